@@ -1,0 +1,5 @@
+import sys
+
+from spk2img.cli import main
+
+sys.exit(main())

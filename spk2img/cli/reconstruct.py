@@ -1,0 +1,106 @@
+"""``spk2img reconstruct``: a spike file -> ``OUT.npz`` of frames (locally or through a service)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from spk2img.core.errors import InputError
+from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, method_plan
+from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, read_spikes
+from spk2img.core.stream import collect, frame_chunks, run_stream
+
+DEFAULT_STRIDE = 7
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "reconstruct",
+        help="reconstruct images from a spike stream",
+        description="Reconstruct linear-intensity frames from a .dat/.npy/.npz spike stream and "
+        "write OUT.npz with 'frames' (N, H, W) float32 and 'centers' (N,) int64.",
+    )
+    p.add_argument("input", type=Path, help=".dat (needs --height/--width) or .npy/.npz (T, H, W)")
+    p.add_argument("--out", type=Path, required=True, help="output .npz")
+    p.add_argument("--height", type=int, default=DEFAULT_HEIGHT, help="frame height of a .dat")
+    p.add_argument("--width", type=int, default=DEFAULT_WIDTH, help="frame width of a .dat")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--centers", help="comma-separated centre frames, e.g. 40,80,120")
+    which.add_argument(
+        "--stride", type=int, help=f"every S-th centre with a full window (default {DEFAULT_STRIDE})"
+    )
+    p.add_argument("--method", choices=METHODS, default="net", help="default: net")
+    p.add_argument("--window", type=int, default=DEFAULT_TFP_WINDOW, help="TFP's window (odd)")
+    p.add_argument("--model", type=Path, help="ONNX model (default: the shipped model)")
+    p.add_argument("--backend", choices=("onnx", "torch"), default="onnx")
+    p.add_argument("--checkpoint", type=Path, help="torch checkpoint for --backend torch")
+    p.add_argument("--threads", type=int, default=None, help="inference threads")
+    p.add_argument("--url", help="send the work to a running service, e.g. http://127.0.0.1:8000")
+    p.add_argument("--png-dir", type=Path, help="also save each frame as a PNG (gamma 1/2.2)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    stride = args.stride if args.stride is not None or args.centers else DEFAULT_STRIDE
+    if args.out.suffix != ".npz":
+        raise InputError(f"--out must name a .npz file, got {args.out}")
+    if args.url:
+        frames, centers = _reconstruct_remote(args, stride)
+    else:
+        frames, centers = _reconstruct_local(args, stride)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(args.out, frames=frames, centers=centers)
+    if args.png_dir:
+        save_pngs(args.png_dir, frames, centers)
+    print(f"wrote {len(centers)} frames of {frames.shape[1]}x{frames.shape[2]} to {args.out}",
+          file=sys.stderr)
+    return 0
+
+
+def _reconstruct_local(args: argparse.Namespace, stride: int | None):
+    from tqdm import tqdm
+
+    spikes = read_spikes(args.input, args.height, args.width)
+    height, width = spikes.shape[1:]
+    plan = method_plan(args.method, args.centers, stride, args.window)
+    n_out = len(plan.centers_for(len(spikes)))
+    predict = load_predictor(args) if args.method == "net" else None
+    recon = build_reconstructor(args.method, height, width, plan, predict)
+    results = run_stream(recon, frame_chunks(spikes))
+    bar = tqdm(results, total=n_out, unit="frame", disable=args.no_progress, file=sys.stderr)
+    return collect(bar, height, width)
+
+
+def load_predictor(args: argparse.Namespace):
+    """The model for ``--method net``: ONNX by default, torch with ``--backend torch``."""
+    if args.backend == "torch":
+        try:
+            from spk2img.training.predictor import TorchPredictor
+        except ImportError as exc:
+            raise InputError(
+                f"--backend torch needs the training extra: pip install 'spk2img[train]' ({exc})"
+            ) from exc
+        return TorchPredictor(args.checkpoint, threads=args.threads)
+    from spk2img.core.onnx_backend import OnnxModel
+
+    return OnnxModel(args.model, threads=args.threads)
+
+
+def _reconstruct_remote(args: argparse.Namespace, stride: int | None):
+    from spk2img.clients.remote import reconstruct_file_remote
+
+    return reconstruct_file_remote(args, stride)
+
+
+def save_pngs(directory: Path, frames: np.ndarray, centers: np.ndarray) -> None:
+    """Write each frame as ``frame_{centre:06d}.png`` (display gamma 1/2.2)."""
+    from PIL import Image
+
+    from spk2img.core.light import to_display
+
+    directory.mkdir(parents=True, exist_ok=True)
+    for k, image in zip(centers, to_display(frames), strict=True):
+        Image.fromarray(image).save(directory / f"frame_{int(k):06d}.png")

@@ -1,0 +1,48 @@
+"""The reconstruction methods behind one interface: a name -> a streaming reconstructor.
+
+``net`` runs a model (any :data:`~spk2img.core.stream.Predictor`: onnxruntime or torch) on
+41-frame windows; ``tfp`` and ``tfi`` are the classical methods of SPEC §3.
+"""
+
+from __future__ import annotations
+
+from .errors import InputError
+from .stream import NetStream, Predictor, StreamingReconstructor, TFIStream, TFPStream
+from .windows import NET_WINDOW, CenterPlan
+
+METHODS = ("net", "tfp", "tfi")
+DEFAULT_TFP_WINDOW = 41
+
+
+def method_plan(
+    method: str, centers: str | None, stride: int | None, window: int = DEFAULT_TFP_WINDOW
+) -> CenterPlan:
+    """The centre plan for ``method``: the network always uses 41 frames; TFP uses ``window``;
+    TFI searches the whole stream but, like TFP, accepts only centres with a full ``window``."""
+    check_method(method)
+    return CenterPlan.parse(NET_WINDOW if method == "net" else window, centers, stride)
+
+
+def check_method(method: str) -> str:
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    return method
+
+
+def build_reconstructor(
+    method: str,
+    height: int,
+    width: int,
+    plan: CenterPlan,
+    predict: Predictor | None = None,
+    max_batch: int = 4,
+) -> StreamingReconstructor:
+    """A fresh streaming reconstructor for one stream of ``height x width`` frames."""
+    check_method(method)
+    if method == "tfp":
+        return TFPStream(height, width, plan)
+    if method == "tfi":
+        return TFIStream(height, width, plan)
+    if predict is None:
+        raise InputError("method 'net' needs a model")
+    return NetStream(height, width, plan, predict, max_batch)

@@ -1,0 +1,235 @@
+"""Spike streams on disk and in memory (SPEC §1).
+
+On disk (PKU ``.dat``): no header; each frame is ``ceil(H*W/8)`` bytes; pixel ``p = row*W + col``
+is bit ``p % 8`` (least significant bit first) of byte ``p // 8``; rows are stored bottom row
+first. In memory a stream is ``(T, H, W) uint8`` of 0/1, upright, time first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+DEFAULT_HEIGHT = 250
+DEFAULT_WIDTH = 400
+
+
+class SpikeFormatError(InputError):
+    """A byte stream or array that is not a valid spike stream of the stated size."""
+
+
+def frame_nbytes(height: int, width: int) -> int:
+    """Bytes one frame of ``height x width`` takes on disk: ``ceil(H*W/8)``."""
+    check_size(height, width)
+    return (height * width + 7) // 8
+
+
+def check_size(height: int, width: int) -> None:
+    """Raise :class:`SpikeFormatError` unless both sides are positive integers."""
+    if int(height) != height or int(width) != width or height < 1 or width < 1:
+        raise SpikeFormatError(f"height and width must be positive integers, got {height}x{width}")
+
+
+def pack_frames(frames: np.ndarray) -> bytes:
+    """Encode ``(T, H, W)`` 0/1 upright frames as ``.dat`` bytes (bottom row first, LSB first)."""
+    frames = as_spike_array(frames)
+    t, h, w = frames.shape
+    flat = frames[:, ::-1, :].reshape(t, h * w)
+    pad = frame_nbytes(h, w) * 8 - h * w
+    if pad:
+        flat = np.concatenate([flat, np.zeros((t, pad), np.uint8)], axis=1)
+    return np.packbits(flat, axis=1, bitorder="little").tobytes()
+
+
+def unpack_frames(data: bytes | bytearray | memoryview | np.ndarray, height: int, width: int) -> np.ndarray:
+    """Decode ``.dat`` bytes holding whole frames into ``(T, H, W) uint8`` 0/1, upright.
+
+    Raises :class:`SpikeFormatError` for an empty buffer or one that is not a whole number of
+    frames of ``height x width``.
+    """
+    nbytes = frame_nbytes(height, width)
+    raw = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
+    raw = raw.reshape(-1)
+    if raw.size == 0:
+        raise SpikeFormatError("empty spike stream: no frames")
+    if raw.size % nbytes:
+        raise SpikeFormatError(
+            f"{raw.size} bytes is not a whole number of {height}x{width} frames "
+            f"({nbytes} bytes each): {raw.size // nbytes} frames and {raw.size % nbytes} "
+            "bytes of a partial trailing frame"
+        )
+    t = raw.size // nbytes
+    bits = np.unpackbits(raw.reshape(t, nbytes), axis=1, count=height * width, bitorder="little")
+    return np.ascontiguousarray(bits.reshape(t, height, width)[:, ::-1, :])
+
+
+def as_spike_array(frames: np.ndarray) -> np.ndarray:
+    """Check and return ``frames`` as ``(T, H, W) uint8`` 0/1 (raises :class:`SpikeFormatError`)."""
+    frames = np.asarray(frames)
+    if frames.ndim != 3:
+        raise SpikeFormatError(f"a spike array must be (T, H, W), got shape {frames.shape}")
+    if frames.size == 0:
+        raise SpikeFormatError(f"empty spike array of shape {frames.shape}")
+    if frames.dtype == np.bool_:
+        return frames.astype(np.uint8)
+    if not (np.issubdtype(frames.dtype, np.integer) or np.issubdtype(frames.dtype, np.floating)):
+        raise SpikeFormatError(f"spike array of dtype {frames.dtype} is not numeric")
+    if frames.dtype != np.uint8:
+        if not np.isin(frames, (0, 1)).all():
+            raise SpikeFormatError("spike array values must be 0 or 1")
+        return frames.astype(np.uint8)
+    if frames.max() > 1:
+        raise SpikeFormatError("spike array values must be 0 or 1")
+    return frames
+
+
+class DatStream:
+    """A ``.dat`` file opened memory-mapped: frames are decoded only when indexed.
+
+    ``len(stream)`` is the frame count; ``stream[a:b]`` returns ``(b-a, H, W) uint8`` upright.
+    A multi-GB recording is never loaded whole.
+    """
+
+    def __init__(self, path: str | Path, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH):
+        self.path = Path(path)
+        self.height, self.width = height, width
+        self.frame_nbytes = frame_nbytes(height, width)
+        size = self.path.stat().st_size
+        if size == 0:
+            raise SpikeFormatError(f"{self.path}: empty file, no frames")
+        if size % self.frame_nbytes:
+            raise SpikeFormatError(
+                f"{self.path}: {size} bytes is not a whole number of {height}x{width} frames "
+                f"({self.frame_nbytes} bytes each); wrong --height/--width or a truncated file?"
+            )
+        self._raw = np.memmap(self.path, dtype=np.uint8, mode="r")
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self), self.height, self.width)
+
+    def __len__(self) -> int:
+        return self._raw.size // self.frame_nbytes
+
+    def __getitem__(self, index: slice) -> np.ndarray:
+        if not isinstance(index, slice):
+            raise TypeError("DatStream supports slices of frames only, e.g. stream[10:51]")
+        start, stop, step = index.indices(len(self))
+        if step != 1:
+            raise TypeError("DatStream slices must be contiguous (step 1)")
+        if stop <= start:
+            return np.zeros((0, self.height, self.width), np.uint8)
+        n = self.frame_nbytes
+        return unpack_frames(self._raw[start * n : stop * n], self.height, self.width)
+
+
+def read_spikes(
+    path: str | Path, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH
+) -> np.ndarray | DatStream:
+    """Open a spike stream from ``.dat`` (memory-mapped), ``.npy`` (memory-mapped) or ``.npz``.
+
+    ``height``/``width`` are used by ``.dat`` only. ``.npz`` files take the array under ``spk``
+    or ``spikes``, else their only array. Returns something indexable by frame slices with a
+    ``(T, H, W)`` shape; raises :class:`SpikeFormatError` for unreadable or malformed input and
+    ``FileNotFoundError`` for a missing file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such file: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".dat":
+        return DatStream(path, height, width)
+    if suffix == ".npy":
+        try:
+            arr = np.load(path, mmap_mode="r", allow_pickle=False)
+        except ValueError as exc:
+            raise SpikeFormatError(f"{path}: not a readable .npy array ({exc})") from exc
+        return _checked_array(arr, path)
+    if suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                named = [k for k in ("spk", "spikes") if k in npz.files]
+                if not named and len(npz.files) != 1:
+                    raise SpikeFormatError(f"{path}: holds {npz.files}; expected a 'spk' array")
+                arr = npz[(named or npz.files)[0]]
+        except (ValueError, OSError) as exc:
+            raise SpikeFormatError(f"{path}: not a readable .npz archive ({exc})") from exc
+        return _checked_array(arr, path)
+    raise SpikeFormatError(f"{path}: unknown spike file type {suffix!r} (use .dat, .npy or .npz)")
+
+
+def _checked_array(arr: np.ndarray, path: Path) -> np.ndarray:
+    if arr.ndim != 3 or arr.size == 0:
+        raise SpikeFormatError(f"{path}: expected a non-empty (T, H, W) array, got {arr.shape}")
+    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.number):
+        return as_spike_array(arr)
+    return arr  # checked for 0/1 lazily per window by as_spike_array at use
+
+
+def write_spikes(path: str | Path, frames: np.ndarray) -> None:
+    """Write ``(T, H, W)`` 0/1 frames to ``.dat``, ``.npy`` or ``.npz`` (key ``spk``)."""
+    path = Path(path)
+    frames = as_spike_array(frames)
+    suffix = path.suffix.lower()
+    if suffix == ".dat":
+        path.write_bytes(pack_frames(frames))
+    elif suffix == ".npy":
+        np.save(path, frames)
+    elif suffix == ".npz":
+        np.savez_compressed(path, spk=frames)
+    else:
+        raise SpikeFormatError(f"{path}: unknown spike file type {suffix!r} (use .dat, .npy or .npz)")
+
+
+class SpikeDecoder:
+    """Incremental ``.dat`` decoder: feed byte chunks of any size, get whole frames back.
+
+    >>> dec = SpikeDecoder(250, 400)
+    >>> frames = dec.feed(chunk)   # (n, H, W) uint8, n >= 0
+    >>> dec.finish()               # raises SpikeFormatError on a partial trailing frame
+    """
+
+    def __init__(self, height: int, width: int):
+        self.height, self.width = height, width
+        self.frame_nbytes = frame_nbytes(height, width)
+        self._pending = bytearray()
+        self.frames_decoded = 0
+
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes received that do not yet make a whole frame."""
+        return len(self._pending)
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> np.ndarray:
+        """Add ``chunk``; return the frames it completed as ``(n, H, W) uint8`` (n may be 0)."""
+        self._pending += chunk
+        n_whole = len(self._pending) // self.frame_nbytes
+        if n_whole == 0:
+            return np.zeros((0, self.height, self.width), np.uint8)
+        cut = n_whole * self.frame_nbytes
+        frames = unpack_frames(bytes(self._pending[:cut]), self.height, self.width)
+        del self._pending[:cut]
+        self.frames_decoded += n_whole
+        return frames
+
+    def iter_feed(self, chunks: Iterator[bytes]) -> Iterator[np.ndarray]:
+        """Feed every chunk and yield the non-empty frame batches; check the end with finish()."""
+        for chunk in chunks:
+            frames = self.feed(chunk)
+            if len(frames):
+                yield frames
+        self.finish()
+
+    def finish(self) -> None:
+        """Declare the end of the stream; raise if it ended mid-frame or held no frame at all."""
+        if self._pending:
+            raise SpikeFormatError(
+                f"stream ended inside frame {self.frames_decoded}: {len(self._pending)} of "
+                f"{self.frame_nbytes} bytes of a {self.height}x{self.width} frame"
+            )
+        if self.frames_decoded == 0:
+            raise SpikeFormatError("empty spike stream: no frames")

@@ -1,0 +1,208 @@
+"""Streaming reconstruction: feed frames as they arrive, get ``(centre, image)`` pairs back.
+
+One implementation serves the CLI (which reads files in chunks), the service (which decodes
+uploads incrementally) and the array helpers in :mod:`spk2img.core.classical`, so local and
+remote results are the same by construction. Memory stays bounded by the window, not the
+stream: a reconstructor keeps the last ``window`` frames at most.
+
+Centres are emitted in ascending order, each as soon as its last needed frame has arrived.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+
+from .light import SPIKE_RATE
+from .windows import NET_WINDOW, CenterPlan, WindowError
+
+Frame = tuple[int, np.ndarray]  # (centre index, (H, W) float32 linear intensity in [0, 1])
+
+
+class StreamingReconstructor(ABC):
+    """Base class: frames in by :meth:`push`, finished centres out; :meth:`close` ends the stream.
+
+    Subclasses see every frame once, in order, through :meth:`_on_frame`, and report finished
+    centres. ``window`` is how many frames a centre needs (TFP's window, 41 for the network).
+    """
+
+    def __init__(self, height: int, width: int, plan: CenterPlan):
+        self.height, self.width, self.plan = height, width, plan
+        self.frames_seen = 0
+
+    @property
+    def window(self) -> int:
+        return self.plan.window
+
+    def push(self, frames: np.ndarray) -> list[Frame]:
+        """Feed ``(n, H, W)`` uint8 0/1 frames; return the centres they completed."""
+        if frames.ndim != 3 or frames.shape[1:] != (self.height, self.width):
+            raise WindowError(
+                f"frames of shape {frames.shape[1:]} fed to a {self.height}x{self.width} stream"
+            )
+        done: list[Frame] = []
+        for frame in frames:
+            done.extend(self._on_frame(self.frames_seen, frame))
+            self.frames_seen += 1
+        done.extend(self._flush())
+        return done
+
+    def close(self) -> list[Frame]:
+        """End the stream: return the centres still owed; raise :class:`WindowError` if a
+        requested centre has no full window (or the stream is shorter than one window)."""
+        self.plan.centers_for(self.frames_seen)
+        return self._flush() + self._finish()
+
+    @abstractmethod
+    def _on_frame(self, index: int, frame: np.ndarray) -> list[Frame]:
+        """Take frame ``index`` (``(H, W)`` uint8); return centres finished by it."""
+
+    def _flush(self) -> list[Frame]:
+        """Finish work batched during :meth:`push` (the network batches its windows)."""
+        return []
+
+    def _finish(self) -> list[Frame]:
+        """Centres owed at the end of the stream (TFI's pixels that never fire again)."""
+        return []
+
+
+class WindowedReconstructor(StreamingReconstructor):
+    """Keeps the last ``window`` frames; a centre is due when its last frame arrives."""
+
+    def __init__(self, height: int, width: int, plan: CenterPlan):
+        super().__init__(height, width, plan)
+        self._frames: deque[np.ndarray] = deque(maxlen=plan.window)
+
+    def _on_frame(self, index: int, frame: np.ndarray) -> list[Frame]:
+        leaving = self._frames[0] if len(self._frames) == self.window else None
+        self._frames.append(frame)
+        self._slide(frame, leaving)
+        k = index - self.plan.half
+        if k >= self.plan.half and self.plan.wants(k):
+            return self._due(k)
+        return []
+
+    def _slide(self, entering: np.ndarray, leaving: np.ndarray | None) -> None:
+        """Update running state as one frame enters the window and (maybe) one leaves."""
+
+    @abstractmethod
+    def _due(self, k: int) -> list[Frame]:
+        """Centre ``k``'s window (``self._frames``) is complete."""
+
+
+class TFPStream(WindowedReconstructor):
+    """TFP (SPEC §3): ``mean(frames k-w//2 .. k+w//2) / 0.6``, clipped to [0, 1].
+
+    A running spike count slides with the stream: O(1) work per pixel per frame.
+    """
+
+    def __init__(self, height: int, width: int, plan: CenterPlan):
+        super().__init__(height, width, plan)
+        self._count = np.zeros((height, width), np.int32)
+
+    def _slide(self, entering: np.ndarray, leaving: np.ndarray | None) -> None:
+        self._count += entering
+        if leaving is not None:
+            self._count -= leaving
+
+    def _due(self, k: int) -> list[Frame]:
+        image = self._count.astype(np.float32) / np.float32(self.window * SPIKE_RATE)
+        return [(k, np.clip(image, 0.0, 1.0))]
+
+
+Predictor = Callable[[np.ndarray], np.ndarray]
+"""``(B, 41, H, W) float32`` 0/1 windows -> ``(B, H, W) float32`` linear intensity in [0, 1]."""
+
+
+class NetStream(WindowedReconstructor):
+    """The network on every due 41-frame window, batched ``max_batch`` windows at a time."""
+
+    def __init__(
+        self, height: int, width: int, plan: CenterPlan, predict: Predictor, max_batch: int = 4
+    ):
+        if plan.window != NET_WINDOW:
+            raise WindowError(f"the network needs a {NET_WINDOW}-frame window, got {plan.window}")
+        super().__init__(height, width, plan)
+        self.predict, self.max_batch = predict, max_batch
+        self._batch: list[tuple[int, np.ndarray]] = []
+
+    def _due(self, k: int) -> list[Frame]:
+        self._batch.append((k, np.stack(self._frames)))
+        return self._flush() if len(self._batch) >= self.max_batch else []
+
+    def _flush(self) -> list[Frame]:
+        if not self._batch:
+            return []
+        centers = [k for k, _ in self._batch]
+        windows = np.stack([w for _, w in self._batch]).astype(np.float32)
+        self._batch = []
+        images = self.predict(windows)
+        return list(zip(centers, images, strict=True))
+
+
+class TFIStream(StreamingReconstructor):
+    """TFI (SPEC §3): ``1 / (0.6 * (t_next - t_prev))``, clipped to [0, 1], over the whole stream.
+
+    ``t_prev`` is the last spike at or before ``k``, ``t_next`` the first after ``k``. A centre is
+    emitted once its window has arrived and every pixel has fired after it, else at the end of the
+    stream, where a side with no spike counts as the distance to the stream's edge
+    (``k - t_prev = k + 1``, ``t_next - k = T - k``): finite, in [0, 1], dark where spikes are rare.
+    """
+
+    def __init__(self, height: int, width: int, plan: CenterPlan):
+        super().__init__(height, width, plan)
+        self._last_spike = np.full((height, width), -1, np.int64)
+        self._pending: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # k, t_prev, t_next
+
+    def _on_frame(self, index: int, frame: np.ndarray) -> list[Frame]:
+        fired = frame.astype(bool)
+        for _, _, t_next in self._pending:
+            t_next[fired & (t_next < 0)] = index
+        self._last_spike[fired] = index
+        if self.plan.wants(index):
+            self._pending.append((index, self._last_spike.copy(), np.full_like(self._last_spike, -1)))
+        done = []
+        while self._pending:
+            k, t_prev, t_next = self._pending[0]
+            if index < k + self.plan.half or (t_next < 0).any():
+                break
+            self._pending.popleft()
+            done.append((k, _tfi_image(t_next - t_prev)))
+        return done
+
+    def _finish(self) -> list[Frame]:
+        done = []
+        for k, t_prev, t_next in self._pending:
+            t_next = np.where(t_next < 0, self.frames_seen, t_next)
+            done.append((k, _tfi_image(t_next - t_prev)))
+        self._pending.clear()
+        return done
+
+
+def _tfi_image(interval: np.ndarray) -> np.ndarray:
+    """``1 / (0.6 * interval)`` clipped to [0, 1]; ``interval`` >= 1 frames, ``(H, W)``."""
+    return np.clip(1.0 / (SPIKE_RATE * interval.astype(np.float32)), 0.0, 1.0)
+
+
+def run_stream(recon: StreamingReconstructor, chunks: Iterable[np.ndarray]) -> Iterator[Frame]:
+    """Push every ``(n, H, W)`` chunk through ``recon`` and yield ``(centre, image)`` pairs."""
+    for chunk in chunks:
+        yield from recon.push(chunk)
+    yield from recon.close()
+
+
+def frame_chunks(spikes, chunk: int = 256) -> Iterator[np.ndarray]:
+    """Slices of ``chunk`` frames of a ``(T, H, W)`` array or memory-mapped stream, in order."""
+    for start in range(0, len(spikes), chunk):
+        yield np.asarray(spikes[start : start + chunk], dtype=np.uint8)
+
+
+def collect(frames: Iterable[Frame], height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stack ``(centre, image)`` pairs into ``frames (N, H, W) float32`` and ``centers (N,) int64``."""
+    pairs = list(frames)
+    images = np.stack([img for _, img in pairs]) if pairs else np.zeros((0, height, width))
+    centers = np.asarray([k for k, _ in pairs], dtype=np.int64)
+    return images.astype(np.float32, copy=False), centers

@@ -1,0 +1,97 @@
+"""Choosing output centres and the frame windows around them (one window selector for all).
+
+A centre ``k`` with window ``w`` (odd) needs frames ``k - w//2 .. k + w//2`` of a stream of
+``T`` frames (SPEC §3, §4: the network's window is 41 frames, ``k-20 .. k+20``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .errors import InputError
+
+NET_WINDOW = 41
+
+
+class WindowError(InputError):
+    """A centre without a full window, or a malformed centres/stride request."""
+
+
+def check_window(window: int) -> int:
+    """Return ``window`` if it is a positive odd integer, else raise :class:`WindowError`."""
+    if int(window) != window or window < 1 or window % 2 == 0:
+        raise WindowError(f"window must be a positive odd number of frames, got {window}")
+    return int(window)
+
+
+def parse_centers(text: str) -> list[int]:
+    """Parse ``"40,80,120"`` into ``[40, 80, 120]`` (raises :class:`WindowError`)."""
+    try:
+        centers = [int(part) for part in text.split(",") if part.strip() != ""]
+    except ValueError as exc:
+        raise WindowError(f"centers must be comma-separated integers, got {text!r}") from exc
+    if not centers:
+        raise WindowError("centers must name at least one frame")
+    return centers
+
+
+class CenterPlan:
+    """The centres a request wants: an explicit list or every ``stride``-th with a full window.
+
+    ``window`` (odd) is the frames a centre needs: ``k - window//2 .. k + window//2``.
+    """
+
+    def __init__(self, window: int, centers: Sequence[int] | None = None, stride: int | None = None):
+        self.window = check_window(window)
+        self.half = self.window // 2
+        if centers is not None and stride is not None:
+            raise WindowError("give centers or stride, not both")
+        if centers is None and stride is None:
+            raise WindowError("give centers or stride")
+        if stride is not None and (int(stride) != stride or stride < 1):
+            raise WindowError(f"stride must be a positive integer, got {stride}")
+        self.stride = None if stride is None else int(stride)
+        self.centers = None
+        if centers is not None:
+            self.centers = np.unique(np.asarray(list(centers), dtype=np.int64))
+            if self.centers.size == 0:
+                raise WindowError("no centres requested")
+            if self.centers[0] < self.half:
+                raise WindowError(
+                    f"centre {int(self.centers[0])} has no full {self.window}-frame window "
+                    f"(the first valid centre is {self.half})"
+                )
+
+    @classmethod
+    def parse(cls, window: int, centers: str | None = None, stride: int | None = None) -> CenterPlan:
+        """Build a plan from the text forms the CLI and HTTP API take (``"40,80,120"``)."""
+        return cls(window, None if centers is None else parse_centers(centers), stride)
+
+    def wants(self, k: int) -> bool:
+        """Whether centre ``k`` is requested (ignoring whether the stream is long enough)."""
+        if self.centers is not None:
+            i = np.searchsorted(self.centers, k)
+            return bool(i < self.centers.size and self.centers[i] == k)
+        return k >= self.half and (k - self.half) % self.stride == 0
+
+    def centers_for(self, n_frames: int) -> np.ndarray:
+        """All centres this plan yields on a stream of ``n_frames`` frames, checked, ``(N,) int64``.
+
+        Raises :class:`WindowError` when a requested centre (or, for a stride, any centre) has
+        no full window: call it up front when the stream's length is known.
+        """
+        if n_frames < self.window:
+            raise WindowError(
+                f"a stream of {n_frames} frames is shorter than the {self.window}-frame window"
+            )
+        last = n_frames - 1 - self.half
+        if self.centers is None:
+            return np.arange(self.half, last + 1, self.stride, dtype=np.int64)
+        if self.centers[-1] > last:
+            raise WindowError(
+                f"centre {int(self.centers[-1])} has no full {self.window}-frame window in a "
+                f"stream of {n_frames} frames (valid centres: {self.half} .. {last})"
+            )
+        return self.centers

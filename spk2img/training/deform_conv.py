@@ -1,0 +1,121 @@
+"""Modulated deformable convolution (DCNv2) built on ``grid_sample``, so it exports to ONNX.
+
+Semantics are those of torchvision's ``deform_conv2d`` with a mask (SPEC §4): for offset group
+``g`` and kernel tap ``k = i * kw + j``, offset channel ``g * 2K + 2k`` is ``dy`` and
+``g * 2K + 2k + 1`` is ``dx``, mask channel ``g * K + k`` scales the sample, and the tap samples
+the input at ``(y - pad + i * dil + dy, x - pad + j * dil + dx)``, bilinearly, zero outside the
+image. Stride is 1.
+
+All ``K`` taps of all groups are sampled by one ``grid_sample`` call on a
+``(b * groups, K * h_out, w_out, 2)`` grid; one 1x1 convolution then applies the weights.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def modulated_deform_conv2d(
+    x: torch.Tensor,
+    offset: torch.Tensor,
+    mask: torch.Tensor,
+    weight: torch.Tensor,
+    bias: torch.Tensor | None,
+    groups: int,
+    padding: int = 1,
+    dilation: int = 1,
+) -> torch.Tensor:
+    """Modulated deformable convolution, stride 1.
+
+    Args:
+        x: input ``(b, c_in, h, w)``.
+        offset: ``(b, groups * 2 * K, h_out, w_out)``, ``(dy, dx)`` pairs per tap, in pixels.
+        mask: ``(b, groups * K, h_out, w_out)``, the modulation of each tap (already sigmoided).
+        weight: ``(c_out, c_in, kh, kw)`` with ``K = kh * kw``.
+        bias: ``(c_out,)`` or ``None``.
+        groups: offset (deformable) groups; ``c_in`` channels are split into ``groups`` blocks.
+        padding: implicit zero padding of the input on every side.
+        dilation: spacing of the kernel taps.
+
+    Returns:
+        ``(b, c_out, h_out, w_out)`` with ``h_out = h + 2 * padding - dilation * (kh - 1)``.
+    """
+    b, c_in, h, w = x.shape
+    kh, kw = weight.shape[-2:]
+    taps = kh * kw
+    h_out, w_out = offset.shape[-2:]
+
+    # sampling positions in input pixels, (b, groups, K, h_out, w_out) each
+    tap_y = torch.arange(kh, dtype=x.dtype, device=x.device) * dilation - padding
+    tap_x = torch.arange(kw, dtype=x.dtype, device=x.device) * dilation - padding
+    tap_y = tap_y.repeat_interleave(kw).view(1, 1, taps, 1, 1)  # i of k = i * kw + j
+    tap_x = tap_x.repeat(kh).view(1, 1, taps, 1, 1)  # j of k = i * kw + j
+    rows = torch.arange(h_out, dtype=x.dtype, device=x.device).view(1, 1, 1, -1, 1)
+    cols = torch.arange(w_out, dtype=x.dtype, device=x.device).view(1, 1, 1, 1, -1)
+    offset = offset.view(b, groups, taps, 2, h_out, w_out)
+    sample_y = rows + tap_y + offset[:, :, :, 0]
+    sample_x = cols + tap_x + offset[:, :, :, 1]
+
+    # grid_sample's coordinates with align_corners=False: pixel p -> (2p + 1) / size - 1
+    grid = torch.stack([(2 * sample_x + 1) / w - 1, (2 * sample_y + 1) / h - 1], dim=-1)
+    grid = grid.view(b * groups, taps * h_out, w_out, 2)
+    sampled = F.grid_sample(
+        x.reshape(b * groups, c_in // groups, h, w),
+        grid,
+        mode="bilinear",
+        padding_mode="zeros",
+        align_corners=False,
+    )  # (b * groups, c_in / groups, K * h_out, w_out)
+    sampled = sampled.view(b, groups, c_in // groups, taps, h_out, w_out)
+    sampled = sampled * mask.view(b, groups, 1, taps, h_out, w_out)
+
+    # channel order (c_in, K) matches weight.reshape(c_out, c_in * K)
+    columns = sampled.reshape(b, c_in * taps, h_out, w_out)
+    return F.conv2d(columns, weight.reshape(weight.shape[0], c_in * taps, 1, 1), bias)
+
+
+class ModulatedDeformConv2d(nn.Module):
+    """DCNv2 pack as in EDVR's ``DCN_sep``: a 3x3 modulated deformable conv whose offsets and
+    mask are predicted from a separate conditioning feature.
+
+    ``conv_offset_mask`` (3x3, ``condition_channels -> 3 * K * groups``) gives the offsets (first
+    ``2 * K * groups`` channels) and the mask logits (last ``K * groups``); it starts at zero, so
+    a fresh module is a plain convolution scaled by 0.5.
+
+    Args:
+        in_channels: channels of the sampled input.
+        out_channels: channels of the output.
+        condition_channels: channels of the feature that predicts offsets and mask.
+        groups: deformable (offset) groups; must divide ``in_channels``.
+    """
+
+    kernel_size = 3
+
+    def __init__(
+        self, in_channels: int, out_channels: int, condition_channels: int, groups: int
+    ) -> None:
+        super().__init__()
+        if in_channels % groups:
+            raise ValueError(f"groups={groups} must divide in_channels={in_channels}")
+        self.groups = groups
+        taps = self.kernel_size**2
+        # weight and bias laid out and initialised like nn.Conv2d's
+        template = nn.Conv2d(in_channels, out_channels, self.kernel_size, padding=1)
+        self.weight = nn.Parameter(template.weight.detach().clone())
+        self.bias = nn.Parameter(template.bias.detach().clone())
+        self.conv_offset_mask = nn.Conv2d(condition_channels, 3 * taps * groups, 3, padding=1)
+        nn.init.zeros_(self.conv_offset_mask.weight)
+        nn.init.zeros_(self.conv_offset_mask.bias)
+
+    def forward(self, x: torch.Tensor, condition: torch.Tensor) -> torch.Tensor:
+        """``x`` ``(b, in, h, w)``, ``condition`` ``(b, condition_channels, h, w)`` ->
+        ``(b, out, h, w)``."""
+        offset_mask = self.conv_offset_mask(condition)  # (b, 3 * K * groups, h, w)
+        offset, mask_logits = offset_mask.split(
+            [2 * self.kernel_size**2 * self.groups, self.kernel_size**2 * self.groups], dim=1
+        )
+        return modulated_deform_conv2d(
+            x, offset, torch.sigmoid(mask_logits), self.weight, self.bias, self.groups
+        )
