@@ -157,6 +157,11 @@ class TFIStream(StreamingReconstructor):
         self._last_spike = np.full((height, width), -1, np.int64)
         self._pending: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # k, t_prev, t_next
 
+    @property
+    def pending_centres(self) -> int:
+        """Centres seen and not yet emitted; each holds two ``(H, W)`` int64 maps (16 B a pixel)."""
+        return len(self._pending)
+
     def _on_frame(self, index: int, frame: np.ndarray) -> list[Frame]:
         fired = frame.astype(bool)
         for _, _, t_next in self._pending:
@@ -175,7 +180,10 @@ class TFIStream(StreamingReconstructor):
 
     def _finish(self) -> list[Frame]:
         done = []
+        last = self.frames_seen - 1 - self.plan.half  # centres past it have no full window
         for k, t_prev, t_next in self._pending:
+            if k > last:
+                break
             t_next = np.where(t_next < 0, self.frames_seen, t_next)
             done.append((k, _tfi_image(t_next - t_prev)))
         self._pending.clear()

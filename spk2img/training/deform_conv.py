@@ -12,6 +12,8 @@ All ``K`` taps of all groups are sampled by one ``grid_sample`` call on a
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -54,7 +56,7 @@ def modulated_deform_conv2d(
     tap_x = tap_x.repeat(kh).view(1, 1, taps, 1, 1)  # j of k = i * kw + j
     rows = torch.arange(h_out, dtype=x.dtype, device=x.device).view(1, 1, 1, -1, 1)
     cols = torch.arange(w_out, dtype=x.dtype, device=x.device).view(1, 1, 1, 1, -1)
-    offset = offset.view(b, groups, taps, 2, h_out, w_out)
+    offset = offset.reshape(b, groups, taps, 2, h_out, w_out)
     sample_y = rows + tap_y + offset[:, :, :, 0]
     sample_x = cols + tap_x + offset[:, :, :, 1]
 
@@ -69,7 +71,7 @@ def modulated_deform_conv2d(
         align_corners=False,
     )  # (b * groups, c_in / groups, K * h_out, w_out)
     sampled = sampled.view(b, groups, c_in // groups, taps, h_out, w_out)
-    sampled = sampled * mask.view(b, groups, 1, taps, h_out, w_out)
+    sampled = sampled * mask.reshape(b, groups, 1, taps, h_out, w_out)
 
     # channel order (c_in, K) matches weight.reshape(c_out, c_in * K)
     columns = sampled.reshape(b, c_in * taps, h_out, w_out)
@@ -101,11 +103,17 @@ class ModulatedDeformConv2d(nn.Module):
             raise ValueError(f"groups={groups} must divide in_channels={in_channels}")
         self.groups = groups
         taps = self.kernel_size**2
-        # weight and bias laid out and initialised like nn.Conv2d's
-        template = nn.Conv2d(in_channels, out_channels, self.kernel_size, padding=1)
-        self.weight = nn.Parameter(template.weight.detach().clone())
-        self.bias = nn.Parameter(template.bias.detach().clone())
+        size = (out_channels, in_channels, self.kernel_size, self.kernel_size)
+        self.weight = nn.Parameter(torch.empty(size))
+        self.bias = nn.Parameter(torch.empty(out_channels))
         self.conv_offset_mask = nn.Conv2d(condition_channels, 3 * taps * groups, 3, padding=1)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """Weight and bias like ``nn.Conv2d``'s; offsets and mask logits start at zero."""
+        nn.init.kaiming_uniform_(self.weight, a=math.sqrt(5))
+        bound = 1 / math.sqrt(self.weight[0].numel())
+        nn.init.uniform_(self.bias, -bound, bound)
         nn.init.zeros_(self.conv_offset_mask.weight)
         nn.init.zeros_(self.conv_offset_mask.bias)
 

@@ -1,0 +1,63 @@
+"""``spk2img train``: train a Spk2ImgNet member on simulated streams (needs the train extra).
+
+Run under ``torchrun --nproc_per_node N -m spk2img train …`` for data parallelism (gloo on CPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+from spk2img.core.errors import InputError
+
+
+def _fields():
+    from spk2img.training.train import TrainConfig
+
+    return TrainConfig, dataclasses.fields(TrainConfig)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "train", help="train a model on simulated spike streams", description=__doc__
+    )
+    # the flags mirror TrainConfig; their defaults are filled in at run time so that the
+    # parser can be built without importing torch
+    for name, kind in [
+        ("member", str),
+        ("run-dir", str),
+        ("steps", int),
+        ("batch-size", int),
+        ("patch", int),
+        ("lr", float),
+        ("warmup-steps", int),
+        ("seed", int),
+        ("cache-size", int),
+        ("val-every", int),
+        ("val-per-class", int),
+        ("checkpoint-every", int),
+        ("threads", int),
+        ("log-every", int),
+    ]:
+        p.add_argument(f"--{name}", type=kind, default=None)
+    p.add_argument("--no-progress", action="store_true")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        config_cls, fields = _fields()
+    except ImportError as exc:
+        raise InputError(f"training needs the train extra: pip install 'spk2img[train]' ({exc})")
+    from spk2img.training.config import MEMBERS
+    from spk2img.training.train import train
+
+    values = {
+        f.name: getattr(args, f.name) for f in fields if getattr(args, f.name, None) is not None
+    }
+    if args.no_progress:
+        values["progress"] = False
+    cfg = config_cls(**values)
+    if cfg.member not in MEMBERS:
+        raise InputError(f"unknown member {cfg.member!r}: choose one of {', '.join(MEMBERS)}")
+    train(cfg)
+    return 0

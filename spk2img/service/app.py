@@ -1,0 +1,77 @@
+"""The app factory: ``create_app(settings)`` builds a FastAPI app whose lifespan loads the ONNX
+model, starts the inference pool and warms the model up before ``/readyz`` turns 200."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import numpy as np
+from fastapi import FastAPI
+
+from spk2img import __version__
+from spk2img.core.onnx_backend import OnnxModel
+from spk2img.core.windows import NET_WINDOW
+
+from .errors import install_error_handlers
+from .inference import InferencePool
+from .metrics import MetricsMiddleware
+from .routers import health, models, reconstruct
+from .settings import ServiceSettings
+from .state import ServiceState
+
+WARMUP_SIZE = 32
+"""Side of the zero window the model runs once before the service reports ready (pixels)."""
+
+logger = logging.getLogger("spk2img.service")
+
+
+def create_app(settings: ServiceSettings | None = None) -> FastAPI:
+    """A new app serving ``settings`` (default: from the environment)."""
+    state = ServiceState(settings or ServiceSettings())
+    app = FastAPI(
+        title="spk2img",
+        version=__version__,
+        summary="Spike-camera streams to images, streamed frame by frame (see docs/service.md).",
+        lifespan=_lifespan,
+    )
+    app.state.service = state
+    install_error_handlers(app)
+    app.add_middleware(MetricsMiddleware, metrics=state.metrics)
+    for router in (reconstruct.router, models.router, health.router):
+        app.include_router(router)
+    return app
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    state: ServiceState = app.state.service
+    settings = state.settings
+    state.model = await asyncio.to_thread(
+        OnnxModel, settings.model_path, settings.intra_op_threads
+    )
+    state.pool = InferencePool(settings.job_workers, settings.max_queue)
+    state.metrics.watch_pool(lambda: state.pool.jobs, lambda: state.pool.admitted)
+    warm_up = asyncio.create_task(_warm_up(state))
+    try:
+        yield
+    finally:
+        warm_up.cancel()
+        state.ready = False
+        state.pool.shutdown()
+
+
+async def _warm_up(state: ServiceState) -> None:
+    """Run the model once on zeros, then mark the service ready."""
+    state.waiting_for = "the model to warm up"
+    window = np.zeros((1, NET_WINDOW, WARMUP_SIZE, WARMUP_SIZE), np.float32)
+    try:
+        await state.pool.run(state.model, window)
+    except Exception as exc:  # noqa: BLE001 - reported by /readyz and the log, never fatal
+        logger.exception("the model failed its warm-up")
+        state.waiting_for = f"a model that runs (warm-up failed: {exc})"
+        return
+    state.ready = True
+    logger.info("model %s loaded and warmed: ready", state.model.path.name)

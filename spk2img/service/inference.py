@@ -1,0 +1,96 @@
+"""The bounded reconstruction pool: CPU work off the event loop, and admission control.
+
+``workers`` threads run jobs (decoding, TFP/TFI, the model, PNG encoding). A request holds an
+:class:`Admission` from its arrival until its last job has finished and runs one job at a time,
+so at most ``workers`` jobs run and at most ``max_queue`` wait: a request that finds
+``workers + max_queue`` admissions taken is turned away (503) before its body is read.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TypeVar
+
+T = TypeVar("T")
+
+
+class InferencePool:
+    """A thread pool of ``workers`` threads admitting ``workers + max_queue`` requests at once."""
+
+    def __init__(self, workers: int, max_queue: int):
+        self.capacity = workers + max_queue
+        self._executor = ThreadPoolExecutor(workers, thread_name_prefix="spk2img-job")
+        self._lock = threading.Lock()
+        self._admitted = 0
+        self._jobs = 0
+
+    @property
+    def admitted(self) -> int:
+        """Requests holding an admission."""
+        return self._admitted
+
+    @property
+    def jobs(self) -> int:
+        """Jobs submitted and not finished (running or queued)."""
+        return self._jobs
+
+    def admit(self) -> Admission | None:
+        """An admission for one request, or ``None`` when ``capacity`` are taken."""
+        with self._lock:
+            if self._admitted >= self.capacity:
+                return None
+            self._admitted += 1
+        return Admission(self)
+
+    async def run(self, fn: Callable[..., T], *args) -> T:
+        """Run ``fn(*args)`` in the pool (outside an admission: start-up work)."""
+        return await asyncio.wrap_future(self._submit(fn, *args))
+
+    def shutdown(self) -> None:
+        """Drop queued jobs; running ones finish in their threads."""
+        self._executor.shutdown(wait=False, cancel_futures=True)
+
+    def _submit(self, fn: Callable[..., T], *args) -> Future[T]:
+        with self._lock:
+            self._jobs += 1
+        future = self._executor.submit(fn, *args)
+        future.add_done_callback(self._job_done)
+        return future
+
+    def _job_done(self, _: Future) -> None:
+        with self._lock:
+            self._jobs -= 1
+
+    def _release(self, _: Future | None = None) -> None:
+        with self._lock:
+            self._admitted -= 1
+
+
+class Admission:
+    """One request's place in the pool: :meth:`run` its jobs one at a time, then :meth:`close`."""
+
+    def __init__(self, pool: InferencePool):
+        self._pool = pool
+        self._last: Future | None = None
+        self._closed = False
+
+    async def run(self, fn: Callable[..., T], *args) -> T:
+        """Run ``fn(*args)`` in the pool and wait for it. If the wait is cancelled (the client
+        left, the time ran out) a job already running still finishes in its thread."""
+        if self._last is not None and not self._last.done():
+            raise RuntimeError("one job at a time per admission")
+        self._last = self._pool._submit(fn, *args)
+        return await asyncio.wrap_future(self._last)
+
+    def close(self) -> None:
+        """Give the place back once the last job is over (at once if it is)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._last is None:
+            self._pool._release()
+        else:  # called at once when the job is already done
+            self._last.add_done_callback(self._pool._release)

@@ -1,0 +1,115 @@
+"""One request's reconstruction: ``.dat`` bytes in, encoded ``FRAM`` records out.
+
+:class:`StreamJob` wraps the core pieces — :class:`~spk2img.core.spikes.SpikeDecoder`, a
+:class:`~spk2img.core.stream.StreamingReconstructor` and the framing — and enforces the
+per-request limits. Its :meth:`~StreamJob.feed` and :meth:`~StreamJob.finish` run in the
+inference pool, one call at a time; :meth:`~StreamJob.cancel` may be called from any thread.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+
+import numpy as np
+from PIL import Image
+
+from spk2img.core.framing import encode_frame
+from spk2img.core.light import to_display
+from spk2img.core.methods import build_reconstructor
+from spk2img.core.spikes import SpikeDecoder
+from spk2img.core.stream import Frame, Predictor, TFIStream
+from spk2img.core.windows import CenterPlan
+
+from .errors import RequestError
+from .schemas import ReconstructQuery
+from .settings import ServiceSettings
+
+STEP_PIXELS = 2**22
+"""Classical methods push about this many spike pixels between checks for cancellation."""
+
+
+class Cancelled(Exception):
+    """The request ended (client gone, time up) while its job was running."""
+
+
+def check_upload_size(settings: ServiceSettings, n_bytes: int, n_frames: int) -> None:
+    """Raise 413 when an upload of ``n_bytes`` bytes and ``n_frames`` frames is over the limits."""
+    if n_bytes > settings.max_body_bytes:
+        raise RequestError(413, f"the upload is over {settings.max_body_bytes} bytes")
+    if n_frames > settings.max_frames:
+        raise RequestError(413, f"the upload is over {settings.max_frames} frames")
+
+
+class StreamJob:
+    """Decode, reconstruct and encode one uploaded stream of ``query.height x query.width`` frames.
+
+    The network runs ``settings.batch`` windows per model call; classical methods push
+    :data:`STEP_PIXELS` at a time. Between steps the job checks for :meth:`cancel`.
+    """
+
+    def __init__(
+        self,
+        query: ReconstructQuery,
+        plan: CenterPlan,
+        settings: ServiceSettings,
+        predict: Predictor | None = None,
+    ):
+        self.query, self.settings = query, settings
+        self.decoder = SpikeDecoder(query.height, query.width)
+        self.recon = build_reconstructor(
+            query.method, query.height, query.width, plan, predict, settings.batch
+        )
+        pixels = query.height * query.width
+        self.step = settings.batch if query.method == "net" else max(1, STEP_PIXELS // pixels)
+        self.bytes_received = 0
+        self._cancelled = threading.Event()
+
+    def feed(self, chunk: bytes) -> list[bytes]:
+        """Take the next bytes of the upload; return the ``FRAM`` records they completed."""
+        self.bytes_received += len(chunk)
+        frames = self.decoder.feed(chunk)
+        check_upload_size(self.settings, self.bytes_received, self.decoder.frames_decoded)
+        records = []
+        for start in range(0, len(frames), self.step):
+            if self._cancelled.is_set():
+                raise Cancelled
+            records += self._encode(self.recon.push(frames[start : start + self.step]))
+            self._check_pending()
+        return records
+
+    def finish(self) -> list[bytes]:
+        """The upload ended: check it and return the records still owed.
+
+        Raises :class:`~spk2img.core.errors.InputError` for a partial last frame, an empty
+        stream or a centre without a full window.
+        """
+        self.decoder.finish()
+        return self._encode(self.recon.close())
+
+    def cancel(self) -> None:
+        """Stop at the next step (from any thread)."""
+        self._cancelled.set()
+
+    def _check_pending(self) -> None:
+        limit = self.settings.max_tfi_pending
+        if isinstance(self.recon, TFIStream) and self.recon.pending_centres > limit:
+            raise RequestError(
+                413,
+                f"TFI holds over {limit} centres waiting for a pixel's next spike "
+                "(dark pixels): ask for fewer or sparser centres, or use tfp",
+            )
+
+    def _encode(self, frames: list[Frame]) -> list[bytes]:
+        return [self._encode_one(k, image) for k, image in frames]
+
+    def _encode_one(self, center: int, image: np.ndarray) -> bytes:
+        fmt = self.query.format
+        if fmt == "float32":
+            return encode_frame(center, image)
+        display = to_display(image, self.query.gamma)
+        if fmt == "uint8":
+            return encode_frame(center, display, "uint8")
+        png = io.BytesIO()
+        Image.fromarray(display).save(png, format="PNG")
+        return encode_frame(center, display, "png", png.getvalue())

@@ -1,0 +1,69 @@
+"""Service settings: environment variables ``SPK2IMG_<NAME>`` and the flags of ``spk2img serve``.
+
+Every field is both: ``max_body_bytes`` is ``SPK2IMG_MAX_BODY_BYTES`` and ``--max-body-bytes``
+(:mod:`spk2img.cli.serve`); flags win over the environment.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+class ServiceSettings(BaseSettings):
+    """What the service loads, where it listens and how much one request may use."""
+
+    model_config = SettingsConfigDict(env_prefix="SPK2IMG_", extra="ignore")
+
+    model: Path | None = Field(None, description="ONNX model for method 'net' (default: shipped)")
+    host: str = Field("127.0.0.1", description="interface to listen on")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
+    threads: int = Field(
+        default_factory=available_cores, ge=1, description="CPU threads for reconstruction in all"
+    )
+    workers: int | None = Field(
+        None, ge=1, description="reconstruction jobs run at once (default: threads)"
+    )
+    max_queue: int = Field(
+        8, ge=0, description="requests admitted beyond the workers; more get 503"
+    )
+    max_body_bytes: int = Field(256 * 2**20, ge=1, description="upload size limit (bytes)")
+    max_frames: int = Field(20_000, ge=1, description="spike frames per request")
+    max_pixels: int = Field(512 * 512, ge=1, description="height*width limit (pixels)")
+    max_window: int = Field(401, ge=1, description="largest TFP/TFI window (frames)")
+    max_tfi_pending: int = Field(64, ge=1, description="TFI centres waiting for a later spike")
+    max_request_seconds: float = Field(300.0, gt=0, description="wall time of one request (s)")
+    batch: int = Field(1, ge=1, description="41-frame windows per model call")
+    retry_after_seconds: int = Field(1, ge=0, description="Retry-After of a 503 (s)")
+    log_level: LogLevel = Field("info", description="uvicorn log level")
+
+    @property
+    def model_path(self) -> Path:
+        """The model file to serve: ``model`` or the shipped default."""
+        from spk2img.core.onnx_backend import default_model_path
+
+        return self.model if self.model is not None else default_model_path()
+
+    @property
+    def job_workers(self) -> int:
+        """Threads of the reconstruction pool."""
+        return self.workers or self.threads
+
+    @property
+    def intra_op_threads(self) -> int:
+        """onnxruntime intra-op threads per job, so that all jobs together use ``threads``."""
+        return max(1, self.threads // self.job_workers)

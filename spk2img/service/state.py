@@ -1,0 +1,59 @@
+"""What one app holds between requests, and the dependencies that hand it to routes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated
+
+from fastapi import Depends, Request
+
+from spk2img.core.onnx_backend import OnnxModel
+
+from .errors import RequestError
+from .inference import InferencePool
+from .metrics import ServiceMetrics
+from .settings import ServiceSettings
+
+
+@dataclass
+class ServiceState:
+    """The app's settings and metrics, and what the lifespan loads: the model and the pool.
+
+    ``ready`` turns true once the model is loaded and warmed; ``waiting_for`` says what a
+    not-ready service is waiting for.
+    """
+
+    settings: ServiceSettings
+    metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
+    model: OnnxModel | None = None
+    pool: InferencePool | None = None
+    ready: bool = False
+    waiting_for: str = "the model to load"
+
+    def unavailable(self) -> RequestError:
+        """The 503 of a service that is not ready."""
+        retry = {"Retry-After": str(self.settings.retry_after_seconds)}
+        return RequestError(503, f"not ready: waiting for {self.waiting_for}", retry)
+
+
+def service_state(request: Request) -> ServiceState:
+    return request.app.state.service
+
+
+def ready_service(state: Annotated[ServiceState, Depends(service_state)]) -> ServiceState:
+    """The service, once it is ready (else 503 with ``Retry-After``)."""
+    if not state.ready:
+        raise state.unavailable()
+    return state
+
+
+def served_model(state: Annotated[ServiceState, Depends(service_state)]) -> OnnxModel:
+    """The loaded ONNX model (503 before the lifespan has loaded it)."""
+    if state.model is None:
+        raise state.unavailable()
+    return state.model
+
+
+Service = Annotated[ServiceState, Depends(service_state)]
+ReadyService = Annotated[ServiceState, Depends(ready_service)]
+ServedModel = Annotated[OnnxModel, Depends(served_model)]

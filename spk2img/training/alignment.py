@@ -1,0 +1,115 @@
+"""Pyramid, cascading and deformable (PCD) alignment, after EDVR (Wang et al., CVPRW 2019)."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .deform_conv import ModulatedDeformConv2d
+
+
+def _conv(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1)
+
+
+def _upsample(x: torch.Tensor) -> torch.Tensor:
+    return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
+
+
+class FeaturePyramid(nn.Module):
+    """Level ``l`` is level ``l - 1`` through a stride-2 conv3x3 and a conv3x3, each with
+    LeakyReLU 0.1; level 1 is the input.
+
+    Args:
+        channels: feature channels at every level.
+        levels: pyramid levels (3 as published: 1, 1/2, 1/4 of the size).
+    """
+
+    def __init__(self, channels: int, levels: int) -> None:
+        super().__init__()
+        self.downsample = nn.ModuleList(
+            nn.Sequential(
+                _conv(channels, channels, stride=2),
+                nn.LeakyReLU(0.1),
+                _conv(channels, channels),
+                nn.LeakyReLU(0.1),
+            )
+            for _ in range(levels - 1)
+        )
+
+    def forward(self, feat: torch.Tensor) -> list[torch.Tensor]:
+        """``(b, c, h, w)``, ``h`` and ``w`` multiples of ``2**(levels-1)`` -> one
+        ``(b, c, h / 2**(l-1), w / 2**(l-1))`` per level ``l = 1 .. levels``."""
+        pyramid = [feat]
+        for downsample in self.downsample:
+            pyramid.append(downsample(pyramid[-1]))
+        return pyramid
+
+
+class PCDAlignment(nn.Module):
+    """Aligns a neighbour's feature pyramid to the key's, coarse to fine, then once more at
+    full size (the cascade).
+
+    At level ``l`` the offset feature comes from ``[neighbour, key]`` and, below the coarsest
+    level, from the level ``l + 1`` offset feature upsampled and doubled (motion in pixels
+    doubles from level to level); a modulated deformable conv samples the neighbour with it,
+    and the result is fused with the upsampled level ``l + 1`` result. LeakyReLU 0.1 after every
+    conv except the level-1 fusion (as in EDVR).
+
+    Args:
+        channels: feature channels.
+        levels: pyramid levels.
+        groups: deformable groups of every deformable conv.
+    """
+
+    def __init__(self, channels: int, levels: int, groups: int) -> None:
+        super().__init__()
+        self.levels = levels
+        self.offset_conv1 = nn.ModuleDict()
+        self.offset_conv2 = nn.ModuleDict()
+        self.offset_conv3 = nn.ModuleDict()
+        self.dcn_pack = nn.ModuleDict()
+        self.feat_conv = nn.ModuleDict()
+        for i in range(levels, 0, -1):
+            level = f"l{i}"
+            coarsest = i == levels
+            self.offset_conv1[level] = _conv(2 * channels, channels)
+            self.offset_conv2[level] = _conv(channels if coarsest else 2 * channels, channels)
+            if not coarsest:
+                self.offset_conv3[level] = _conv(channels, channels)
+                self.feat_conv[level] = _conv(2 * channels, channels)
+            self.dcn_pack[level] = ModulatedDeformConv2d(channels, channels, channels, groups)
+        self.cas_offset_conv1 = _conv(2 * channels, channels)
+        self.cas_offset_conv2 = _conv(channels, channels)
+        self.cas_dcn_pack = ModulatedDeformConv2d(channels, channels, channels, groups)
+        self.lrelu = nn.LeakyReLU(0.1)
+
+    def forward(self, neighbour: list[torch.Tensor], key: list[torch.Tensor]) -> torch.Tensor:
+        """Pyramids (level 1 first) of ``(b, c, h_l, w_l)`` -> the aligned neighbour
+        ``(b, c, h, w)``."""
+        upsampled_offset: torch.Tensor | None = None  # from level l + 1, (b, c, h_l, w_l)
+        upsampled_feat: torch.Tensor | None = None
+        for i in range(self.levels, 0, -1):
+            level = f"l{i}"
+            offset = torch.cat([neighbour[i - 1], key[i - 1]], dim=1)  # (b, 2c, h_l, w_l)
+            offset = self.lrelu(self.offset_conv1[level](offset))
+            if upsampled_offset is None:  # coarsest level
+                offset = self.lrelu(self.offset_conv2[level](offset))
+            else:
+                offset = torch.cat([offset, upsampled_offset], dim=1)
+                offset = self.lrelu(self.offset_conv2[level](offset))
+                offset = self.lrelu(self.offset_conv3[level](offset))
+            feat = self.dcn_pack[level](neighbour[i - 1], offset)  # (b, c, h_l, w_l)
+            if upsampled_feat is not None:
+                feat = self.feat_conv[level](torch.cat([feat, upsampled_feat], dim=1))
+            if i > 1:
+                feat = self.lrelu(feat)
+                upsampled_offset = _upsample(offset) * 2  # x2 as EDVR: motion doubles per level
+                upsampled_feat = _upsample(feat)
+
+        # cascade at level 1
+        offset = torch.cat([feat, key[0]], dim=1)
+        offset = self.lrelu(self.cas_offset_conv1(offset))
+        offset = self.lrelu(self.cas_offset_conv2(offset))
+        return self.lrelu(self.cas_dcn_pack(feat, offset))  # (b, c, h, w)

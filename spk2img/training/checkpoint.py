@@ -1,0 +1,47 @@
+"""Training checkpoints: plain tensors and containers, loadable with ``weights_only=True``."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import torch
+
+from .config import Spk2ImgNetConfig
+from .network import Spk2ImgNet
+
+
+def config_to_dict(config: Spk2ImgNetConfig) -> dict:
+    return {
+        k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(config).items()
+    }
+
+
+def config_from_dict(data: dict) -> Spk2ImgNetConfig:
+    return Spk2ImgNetConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
+
+
+def save_checkpoint(path: str | Path, **state) -> None:
+    """Write ``state`` atomically (to a temporary file, then renamed) so a kill never corrupts it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read a checkpoint with ``weights_only=True`` (no arbitrary code is unpickled)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such checkpoint: {path}")
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def load_model(path: str | Path) -> Spk2ImgNet:
+    """The network stored in a checkpoint (its config and weights), in eval mode."""
+    state = load_checkpoint(path)
+    model = Spk2ImgNet(config_from_dict(state["config"]))
+    model.load_state_dict(state["model"])
+    return model.eval()

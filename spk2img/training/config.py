@@ -1,0 +1,103 @@
+"""Spk2ImgNet hyper-parameters and the named family members built from them.
+
+``paper`` is the network of SPEC §4 as published (3,904,185 parameters); the smaller members keep
+every idea of it (SALI, pyramid deformable alignment, reliability fusion) at lower width and depth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+
+@dataclass(frozen=True)
+class Spk2ImgNetConfig:
+    """Shape of a Spk2ImgNet; the defaults are the published network (SPEC §4)."""
+
+    block_frames: int = 13
+    """Frames of one temporal block (the key block is centred on the window's centre)."""
+    block_stride: int = 7
+    """Frames between the starts of consecutive blocks."""
+    num_blocks: int = 5
+    """Temporal blocks (odd); the middle one is the key, the others are aligned to it."""
+    sali_subwindows: tuple[int, ...] = (13, 11, 9, 7)
+    """Lengths of the centred sub-windows of a block, one intensity estimate each (SALI)."""
+    sali_hidden: int = 16
+    """Channels of the hidden 3x3 conv of each SALI sub-window branch."""
+    sali_attention_hidden: int = 8
+    """Hidden channels of SALI's attention over the estimates (twice their number as published)."""
+    channels: int = 64
+    """Feature channels of the extractor, the alignment and the reliability masks' output."""
+    residual_blocks: int = 10
+    """Residual blocks of the feature extractor."""
+    convs_per_block: int = 3
+    """3x3 convs per residual block (10 x 3 = 30 as published; the paper text says 15 blocks)."""
+    pyramid_levels: int = 3
+    """Levels of the alignment pyramid (full, 1/2, 1/4 ...); inputs are padded to 2**(levels-1)."""
+    deformable_groups: int = 8
+    """Offset groups of every modulated deformable conv; must divide ``channels``."""
+    reliability_hidden: int = 64
+    """Hidden channels of each neighbour's reliability-mask branch."""
+    fusion_hidden: int = 192
+    """Channels of the first fusion conv (``5 * channels -> fusion_hidden -> channels -> 1``)."""
+
+    def __post_init__(self) -> None:
+        if self.num_blocks % 2 != 1:
+            raise ValueError(f"num_blocks must be odd, got {self.num_blocks}")
+        for length in self.sali_subwindows:
+            if not 0 < length <= self.block_frames or (self.block_frames - length) % 2:
+                raise ValueError(
+                    f"SALI sub-window {length} cannot be centred in a {self.block_frames}-frame "
+                    "block"
+                )
+        if self.channels % self.deformable_groups:
+            raise ValueError(
+                f"deformable_groups={self.deformable_groups} must divide channels={self.channels}"
+            )
+        if self.pyramid_levels < 1:
+            raise ValueError(f"pyramid_levels must be >= 1, got {self.pyramid_levels}")
+
+    @property
+    def window_frames(self) -> int:
+        """Spike frames the network reads (41 as published, centred on the output frame)."""
+        return (self.num_blocks - 1) * self.block_stride + self.block_frames
+
+    @property
+    def size_multiple(self) -> int:
+        """Height and width are padded to a multiple of this for the alignment pyramid."""
+        return 2 ** (self.pyramid_levels - 1)
+
+
+PAPER = Spk2ImgNetConfig()
+
+MEMBERS: dict[str, Spk2ImgNetConfig] = {
+    "paper": PAPER,
+    "small": replace(
+        PAPER,
+        channels=24,
+        residual_blocks=4,
+        deformable_groups=4,
+        reliability_hidden=24,
+        fusion_hidden=72,
+    ),
+    "tiny": replace(
+        PAPER,
+        sali_hidden=8,
+        channels=12,
+        residual_blocks=2,
+        convs_per_block=2,
+        pyramid_levels=2,
+        deformable_groups=2,
+        reliability_hidden=8,
+        fusion_hidden=16,
+    ),
+}
+"""The named family members, largest first: ``paper`` (3.90 M parameters), ``small`` (0.49 M,
+the paper's width ratios at 24 channels), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
+
+
+def get_config(name: str) -> Spk2ImgNetConfig:
+    """The config of member ``name`` (one of :data:`MEMBERS`)."""
+    try:
+        return MEMBERS[name]
+    except KeyError:
+        raise ValueError(f"unknown model {name!r}; choose one of {', '.join(MEMBERS)}") from None

@@ -1,0 +1,87 @@
+"""A fixed simulated validation set and the scores of the network and the classical methods.
+
+Scenes come from seeds no training batch uses, in every motion and brightness class, so the
+scores measure scenes the network never trained on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from itertools import product
+
+import numpy as np
+
+from spk2img.core.classical import tfi, tfp
+from spk2img.core.metrics import psnr, ssim
+from spk2img.core.simulator import training_sample
+
+VALIDATION_SEED = 987_654_321  # disjoint from training seeds (which are < 10**6 in practice)
+MOTIONS = ("static", "slow", "fast")
+BRIGHTNESS = ("dim", "normal", "bright")
+TFP_WINDOWS = tuple(range(3, 42, 2))
+KEY = 2  # the key block's index among the five ground-truth block centres
+
+
+@dataclass(frozen=True)
+class ValidationScene:
+    spikes: np.ndarray  # (41, H, W) uint8
+    truth: np.ndarray  # (H, W) float32, ground truth at the window's centre
+    motion: str
+    brightness: str
+
+
+def validation_set(per_class: int = 2, height: int = 64, width: int = 96) -> list[ValidationScene]:
+    """``per_class`` scenes for each of the 9 (motion, brightness) classes."""
+    scenes = []
+    for i, (motion, light) in enumerate(product(MOTIONS, BRIGHTNESS)):
+        for j in range(per_class):
+            rng = np.random.default_rng([VALIDATION_SEED, i, j])
+            spikes, truth = training_sample(rng, height, width, motion=motion, brightness=light)
+            scenes.append(ValidationScene(spikes, truth[KEY], motion, light))
+    return scenes
+
+
+Reconstruct = Callable[[np.ndarray], np.ndarray]
+"""``(41, H, W) uint8`` window -> ``(H, W)`` float32 image at its centre frame 20."""
+
+
+def tfp_best_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """TFP with the window (odd, 3..41) that scores best against ``truth``: an oracle baseline."""
+    candidates = [tfp(spikes, [20], w)[0] for w in TFP_WINDOWS]
+    return max(candidates, key=lambda image: psnr(image, truth))
+
+
+def tfi_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """TFI at the window's centre (its spike search spans the 41 frames)."""
+    return tfi(spikes, [20])[0]
+
+
+def score(
+    method: Callable[[np.ndarray, np.ndarray], np.ndarray], scenes: list[ValidationScene]
+) -> dict:
+    """Mean PSNR (dB) and SSIM over all scenes and per motion/brightness class."""
+    rows = []
+    for scene in scenes:
+        image = method(scene.spikes, scene.truth)
+        rows.append((scene, psnr(image, scene.truth), ssim(image, scene.truth)))
+    out = {
+        "psnr": float(np.mean([r[1] for r in rows])),
+        "ssim": float(np.mean([r[2] for r in rows])),
+    }
+    for attr, names in (("motion", MOTIONS), ("brightness", BRIGHTNESS)):
+        for name in names:
+            sel = [r for r in rows if getattr(r[0], attr) == name]
+            if sel:
+                out[f"psnr_{name}"] = float(np.mean([r[1] for r in sel]))
+    return out
+
+
+def baseline_scores(scenes: list[ValidationScene]) -> dict[str, dict]:
+    """Scores of best-window TFP and of TFI on ``scenes``."""
+    return {"tfp_best": score(tfp_best_window, scenes), "tfi": score(tfi_window, scenes)}
+
+
+def network_scorer(predict: Callable[[np.ndarray], np.ndarray]):
+    """Adapt a batch predictor ``(B, 41, H, W) -> (B, H, W)`` to :func:`score`'s method shape."""
+    return lambda spikes, truth: predict(spikes[None].astype(np.float32))[0]

@@ -1,0 +1,30 @@
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+import pytest  # noqa: E402
+
+SERVICE_LIMITS = (
+    "--threads", "2", "--workers", "2", "--max-queue", "6", "--max-body-bytes", "1000000",
+    "--max-frames", "2000", "--max-pixels", "100000", "--max-window", "101",
+    "--max-tfi-pending", "16", "--max-request-seconds", "60",
+)  # fmt: skip
+"""The limits of the shared test service (small, so that the limit tests stay cheap)."""
+
+
+@pytest.fixture(scope="session")
+def standin_model(tmp_path_factory):
+    """A TFP-41 ONNX graph standing in for a trained model (tests/onnx_models.py)."""
+    from onnx_models import write_tfp41_model
+
+    return write_tfp41_model(tmp_path_factory.mktemp("models") / "tfp41.onnx")
+
+
+@pytest.fixture(scope="session")
+def service(standin_model):
+    """A real ``spk2img serve`` (uvicorn, subprocess) serving the stand-in model."""
+    from service_support import run_server
+
+    with run_server(standin_model, *SERVICE_LIMITS) as server:
+        yield server

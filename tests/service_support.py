@@ -1,0 +1,185 @@
+"""Helpers for the service tests: a real ``spk2img serve`` in a subprocess, and a small h11
+client that can read the response while it is still sending the body (full duplex)."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import h11
+import httpx
+import numpy as np
+
+from spk2img.core.framing import DoneRecord, ErrorRecord, FrameRecord, RecordParser
+from spk2img.core.spikes import pack_frames
+
+START_SECONDS = 60
+OCTET = {"content-type": "application/octet-stream"}
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@dataclass
+class Server:
+    """A running ``spk2img serve``: its base URL, port and process."""
+
+    url: str
+    port: int
+    process: subprocess.Popen
+
+    def get(self, path: str) -> httpx.Response:
+        return httpx.get(self.url + path, timeout=10)
+
+
+@contextmanager
+def run_server(
+    model: Path, *flags: str, python: str = sys.executable, env: dict | None = None
+) -> Iterator[Server]:
+    """Start ``spk2img serve --model MODEL FLAGS…`` on a free port; wait until ``/readyz`` is 200."""
+    port = free_port()
+    cmd = [python, "-m", "spk2img", "serve", "--model", str(model), "--port", str(port)]
+    cmd += ["--log-level", "warning", *flags]
+    process = subprocess.Popen(cmd, env=env or os.environ.copy(), stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT)  # fmt: skip
+    server = Server(f"http://127.0.0.1:{port}", port, process)
+    try:
+        _wait_ready(server)
+        yield server
+    finally:
+        process.terminate()
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(10)
+
+
+def _wait_ready(server: Server) -> None:
+    deadline = time.monotonic() + START_SECONDS
+    while time.monotonic() < deadline:
+        if server.process.poll() is not None:
+            out = server.process.stdout.read().decode(errors="replace")
+            raise RuntimeError(f"spk2img serve exited with {server.process.returncode}:\n{out}")
+        try:
+            if server.get("/readyz").status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.1)
+    raise RuntimeError(f"spk2img serve not ready after {START_SECONDS} s")
+
+
+def random_stream(frames: int, height: int, width: int, seed: int = 0) -> np.ndarray:
+    """``(T, H, W)`` uint8 0/1 spikes with a different firing rate in each pixel."""
+    rng = np.random.default_rng(seed)
+    rate = rng.uniform(0.02, 0.6, (height, width))
+    return (rng.random((frames, height, width)) < rate).astype(np.uint8)
+
+
+def stream_bytes(frames: int, height: int, width: int, seed: int = 0) -> tuple[np.ndarray, bytes]:
+    spikes = random_stream(frames, height, width, seed)
+    return spikes, pack_frames(spikes)
+
+
+class DuplexClient:
+    """One HTTP/1.1 exchange over h11 on a raw socket: send the body in pieces, read at any time."""
+
+    def __init__(self, port: int, timeout: float = 20):
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=timeout)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.conn = h11.Connection(h11.CLIENT)
+        self.response: h11.Response | None = None
+        self.ended = False
+
+    def start(self, target: str, headers: dict[str, str] | None = None, length: int | None = None):
+        """Send the request head: chunked unless ``length`` (a Content-Length) is given."""
+        head = [("host", "127.0.0.1"), *(headers if headers is not None else OCTET).items()]
+        head.append(("content-length", str(length)) if length is not None
+                    else ("transfer-encoding", "chunked"))  # fmt: skip
+        self._send(h11.Request(method="POST", target=target, headers=head))
+
+    def send(self, data: bytes) -> None:
+        if data:
+            self._send(h11.Data(data=data))
+
+    def end(self) -> None:
+        self._send(h11.EndOfMessage())
+
+    def read_head(self) -> h11.Response:
+        while self.response is None:
+            self._next()
+        return self.response
+
+    def read_some(self) -> bytes:
+        """The next piece of the response body (``b""`` once it has ended)."""
+        self.read_head()
+        while not self.ended:
+            event = self._next()
+            if isinstance(event, h11.Data):
+                return bytes(event.data)
+        return b""
+
+    def read_all(self) -> bytes:
+        body = bytearray()
+        while piece := self.read_some():
+            body += piece
+        return bytes(body)
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def _send(self, event) -> None:
+        self.sock.sendall(self.conn.send(event))
+
+    def _next(self):
+        while True:
+            event = self.conn.next_event()
+            if event is h11.NEED_DATA:
+                data = self.sock.recv(65536)
+                self.conn.receive_data(data)
+                if not data and self.conn.their_state is not h11.DONE:
+                    raise ConnectionError("the server closed the connection mid-response")
+                continue
+            if isinstance(event, h11.Response):
+                self.response = event
+            elif isinstance(event, h11.EndOfMessage):
+                self.ended = True
+            return event
+
+
+def post_chunks(port: int, target: str, chunks: Iterable[bytes], pause: float = 0.0):
+    """POST ``chunks`` chunked (``pause`` seconds between them); return (status, headers, body)."""
+    client = DuplexClient(port)
+    try:
+        client.start(target)
+        for chunk in chunks:
+            client.send(chunk)
+            if pause:
+                time.sleep(pause)
+        client.end()
+        head = client.read_head()
+        return head.status_code, dict(head.headers), client.read_all()
+    finally:
+        client.close()
+
+
+def parse_frames(body: bytes) -> tuple[list[FrameRecord], DoneRecord | ErrorRecord]:
+    """Split a whole response body into its frames and its last record (DONE or ERRO)."""
+    parser = RecordParser()
+    records = parser.feed(body)
+    parser.finish()
+    *frames, last = records
+    assert all(isinstance(f, FrameRecord) for f in frames), records
+    assert isinstance(last, DoneRecord | ErrorRecord), last
+    return frames, last

@@ -1,0 +1,205 @@
+"""Spk2ImgNet: the grid_sample deformable conv against a loop reference, the published parameter
+counts, shapes at odd sizes, finite outputs on extreme inputs, gradients everywhere."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from spk2img.training.complexity import count_macs, count_parameters
+from spk2img.training.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
+from spk2img.training.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
+from spk2img.training.network import build_model
+
+torch.set_num_threads(1)
+
+
+def naive_modulated_deform_conv2d(x, offset, mask, weight, bias, groups, padding=1, dilation=1):
+    """torchvision's deform_conv2d (stride 1), one tap and one pixel at a time, in float64."""
+    x, offset, mask, weight = (np.asarray(t, dtype=np.float64) for t in (x, offset, mask, weight))
+    b, c_in, h, w = x.shape
+    c_out, _, kh, kw = weight.shape
+    h_out, w_out = offset.shape[-2:]
+    per_group = c_in // groups
+
+    def bilinear(image, y, x_):  # image (c, h, w); zero outside, as torchvision
+        if y <= -1 or y >= h or x_ <= -1 or x_ >= w:
+            return np.zeros(image.shape[0])
+        y0, x0 = math.floor(y), math.floor(x_)
+        value = np.zeros(image.shape[0])
+        for yy, wy in ((y0, 1 - (y - y0)), (y0 + 1, y - y0)):
+            for xx, wx in ((x0, 1 - (x_ - x0)), (x0 + 1, x_ - x0)):
+                if 0 <= yy < h and 0 <= xx < w:
+                    value += wy * wx * image[:, yy, xx]
+        return value
+
+    columns = np.zeros((b, c_in, kh * kw, h_out, w_out))
+    for n in range(b):
+        for g in range(groups):
+            channels = slice(g * per_group, (g + 1) * per_group)
+            for i in range(kh):
+                for j in range(kw):
+                    k = i * kw + j
+                    for y in range(h_out):
+                        for x_ in range(w_out):
+                            dy = offset[n, g * 2 * kh * kw + 2 * k, y, x_]
+                            dx = offset[n, g * 2 * kh * kw + 2 * k + 1, y, x_]
+                            sample = bilinear(
+                                x[n, channels],
+                                y - padding + i * dilation + dy,
+                                x_ - padding + j * dilation + dx,
+                            )
+                            columns[n, channels, k, y, x_] = (
+                                mask[n, g * kh * kw + k, y, x_] * sample
+                            )
+    out = np.einsum("ock,nckyx->noyx", weight.reshape(c_out, c_in, kh * kw), columns)
+    if bias is not None:
+        out += np.asarray(bias, dtype=np.float64)[None, :, None, None]
+    return out
+
+
+@pytest.mark.parametrize(
+    ("groups", "c_in", "c_out", "kernel", "padding", "dilation"),
+    [
+        (1, 3, 2, 3, 1, 1),
+        (2, 4, 3, 3, 1, 1),
+        (4, 8, 5, 3, 1, 1),
+        (2, 4, 2, 3, 2, 2),
+        (3, 3, 2, 1, 0, 1),
+    ],
+)
+def test_deform_conv_matches_loop_reference(groups, c_in, c_out, kernel, padding, dilation):
+    gen = torch.Generator().manual_seed(groups * 100 + c_in)
+    b, h, w = 2, 5, 7
+    h_out, w_out = (
+        h + 2 * padding - dilation * (kernel - 1),
+        w + 2 * padding - dilation * (kernel - 1),
+    )
+    taps = kernel * kernel
+    x = torch.randn(b, c_in, h, w, generator=gen, dtype=torch.float64)
+    # offsets up to +-1.5 image sizes: many taps land far outside, some straddle the border
+    offset = (
+        (torch.rand(b, groups * 2 * taps, h_out, w_out, generator=gen, dtype=torch.float64) * 2 - 1)
+        * 1.5
+        * max(h, w)
+    )
+    offset[:, ::5] = offset[:, ::5].round()  # integer offsets: exact pixels and border lines
+    mask = torch.rand(b, groups * taps, h_out, w_out, generator=gen, dtype=torch.float64)
+    weight = torch.randn(c_out, c_in, kernel, kernel, generator=gen, dtype=torch.float64)
+    bias = torch.randn(c_out, generator=gen, dtype=torch.float64)
+
+    expected = naive_modulated_deform_conv2d(
+        x, offset, mask, weight, bias, groups, padding, dilation
+    )
+    got = modulated_deform_conv2d(x, offset, mask, weight, bias, groups, padding, dilation)
+    np.testing.assert_allclose(got.numpy(), expected, rtol=0, atol=1e-9)
+    got32 = modulated_deform_conv2d(
+        *(t.float() for t in (x, offset, mask, weight, bias)), groups, padding, dilation
+    )
+    np.testing.assert_allclose(got32.numpy(), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_deform_conv_at_zero_offset_is_a_plain_conv():
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 4, 6, 9, generator=gen)
+    weight = torch.randn(3, 4, 3, 3, generator=gen)
+    mask = torch.rand(1, 2 * 9, 6, 9, generator=gen)
+    offset = torch.zeros(1, 2 * 18, 6, 9)
+    uniform = torch.full_like(mask, 0.25)
+    torch.testing.assert_close(
+        modulated_deform_conv2d(x, offset, uniform, weight, None, groups=2),
+        0.25 * F.conv2d(x, weight, padding=1),
+    )
+    # the pack starts with zero offsets and mask 0.5
+    pack = ModulatedDeformConv2d(4, 3, condition_channels=5, groups=2)
+    condition = torch.randn(1, 5, 6, 9, generator=gen)
+    torch.testing.assert_close(
+        pack(x, condition), 0.5 * F.conv2d(x, pack.weight, padding=1) + pack.bias.view(1, 3, 1, 1)
+    )
+
+
+def test_paper_has_the_published_parameter_counts():
+    model = build_model("paper")
+    assert count_parameters(model) == 3_904_185
+    assert count_parameters(model.sali) + count_parameters(model.features) == 1_117_200
+    assert count_parameters(model.pyramid) + count_parameters(model.align) == 1_532_000
+    assert count_parameters(model.fusion.masks) == 590_600
+    assert count_parameters(model.fusion.reconstruct) == 664_385
+    assert model.sali.spans == [(0, 13), (1, 12), (2, 11), (3, 10)]
+    assert PAPER.window_frames == 41
+
+
+def test_members_shrink_in_parameters_and_macs():
+    params = {name: count_parameters(build_model(name)) for name in MEMBERS}
+    assert 300_000 <= params["small"] <= 500_000
+    assert 30_000 <= params["tiny"] <= 80_000
+    macs = {name: count_macs(config, 40, 40) for name, config in MEMBERS.items()}
+    assert macs["paper"] > macs["small"] > macs["tiny"] > 0
+    # SPEC §4: about 1.0 T MACs per 250x400 frame (252x400 once padded to a multiple of 4)
+    assert count_macs(PAPER, 248, 400) == pytest.approx(1.0e12, rel=0.03)
+
+
+def test_config_rejects_impossible_shapes():
+    with pytest.raises(ValueError, match="deformable_groups"):
+        Spk2ImgNetConfig(channels=12, deformable_groups=8)
+    with pytest.raises(ValueError, match="sub-window"):
+        Spk2ImgNetConfig(sali_subwindows=(13, 10))
+    with pytest.raises(ValueError, match="unknown model"):
+        get_config("huge")
+
+
+def test_paper_forward_on_a_small_window():
+    model = build_model("paper").eval()
+    spikes = (torch.rand(1, 41, 24, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
+    with torch.no_grad():
+        image, estimates = model(spikes)
+    assert image.shape == (1, 1, 24, 36)
+    assert estimates.shape == (1, 5, 4, 24, 36)
+    assert torch.isfinite(image).all() and image.min() >= 0 and image.max() <= 1
+
+
+def _extreme_inputs(height: int, width: int) -> dict[str, torch.Tensor]:
+    single = torch.zeros(1, 41, height, width)
+    single[0, 20, height // 2, width // 3] = 1
+    return {
+        "zeros": torch.zeros(1, 41, height, width),
+        "ones": torch.ones(1, 41, height, width),
+        "single spike": single,
+    }
+
+
+@pytest.mark.parametrize("member", list(MEMBERS))
+@pytest.mark.parametrize("training", [False, True], ids=["eval", "train"])
+def test_odd_sizes_and_extreme_inputs_give_finite_outputs(member, training):
+    torch.manual_seed(0)
+    model = build_model(member).train(training)
+    for name, spikes in _extreme_inputs(17, 23).items():
+        with torch.no_grad():
+            image, estimates = model(spikes)
+        assert image.shape == (1, 1, 17, 23), name
+        assert estimates.shape == (1, 5, 4, 17, 23), name
+        assert torch.isfinite(image).all() and torch.isfinite(estimates).all(), name
+        if not training:
+            assert image.min() >= 0 and image.max() <= 1, name
+
+
+@pytest.mark.parametrize("member", ["paper", "tiny"])
+def test_gradients_reach_every_parameter(member):
+    torch.manual_seed(0)
+    model = build_model(member).train()
+    # offset/mask predictors start at zero (as in EDVR), which blocks the gradient to the offset
+    # features until the first update; give them a trained-looking state first
+    for module in model.modules():
+        if isinstance(module, ModulatedDeformConv2d):
+            torch.nn.init.normal_(module.conv_offset_mask.weight, std=0.01)
+    spikes = (torch.rand(2, 41, 12, 20) < 0.4).float()
+    image, estimates = model(spikes)
+    (image.abs().mean() + estimates.abs().mean()).backward()
+    silent = [
+        n for n, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0
+    ]
+    assert not silent
