@@ -3,12 +3,13 @@ client that can read the response while it is still sending the body (full duple
 
 from __future__ import annotations
 
-import os
 import socket
 import subprocess
 import sys
+import tempfile
+import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,32 +45,33 @@ class Server:
 
 @contextmanager
 def run_server(
-    model: Path, *flags: str, python: str = sys.executable, env: dict | None = None
+    model: Path, *flags: str, program: Sequence[str] = (sys.executable, "-m", "spk2img")
 ) -> Iterator[Server]:
-    """Start ``spk2img serve --model MODEL FLAGS…`` on a free port; wait until ``/readyz`` is 200."""
+    """Run ``PROGRAM serve --model MODEL FLAGS…`` on a free port; wait until ``/readyz`` is 200."""
     port = free_port()
-    cmd = [python, "-m", "spk2img", "serve", "--model", str(model), "--port", str(port)]
+    cmd = [*program, "serve", "--model", str(model), "--port", str(port)]
     cmd += ["--log-level", "warning", *flags]
-    process = subprocess.Popen(cmd, env=env or os.environ.copy(), stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT)  # fmt: skip
-    server = Server(f"http://127.0.0.1:{port}", port, process)
-    try:
-        _wait_ready(server)
-        yield server
-    finally:
-        process.terminate()
+    with tempfile.TemporaryFile() as log:  # a file, not a pipe: a full pipe would block it
+        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        server = Server(f"http://127.0.0.1:{port}", port, process)
         try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(10)
+            _wait_ready(server, log)
+            yield server
+        finally:
+            process.terminate()
+            try:
+                process.wait(10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(10)
 
 
-def _wait_ready(server: Server) -> None:
+def _wait_ready(server: Server, log) -> None:
     deadline = time.monotonic() + START_SECONDS
     while time.monotonic() < deadline:
         if server.process.poll() is not None:
-            out = server.process.stdout.read().decode(errors="replace")
+            log.seek(0)
+            out = log.read().decode(errors="replace")
             raise RuntimeError(f"spk2img serve exited with {server.process.returncode}:\n{out}")
         try:
             if server.get("/readyz").status_code == 200:
@@ -93,12 +95,17 @@ def stream_bytes(frames: int, height: int, width: int, seed: int = 0) -> tuple[n
 
 
 class DuplexClient:
-    """One HTTP/1.1 exchange over h11 on a raw socket: send the body in pieces, read at any time."""
+    """One HTTP/1.1 exchange over h11 on a raw socket: send the body in pieces, read at any time.
+
+    Sending and reading may run in two threads (:meth:`send_in_background`): a client that sends
+    a large body without reading a large response would otherwise deadlock with the server.
+    """
 
     def __init__(self, port: int, timeout: float = 20):
         self.sock = socket.create_connection(("127.0.0.1", port), timeout=timeout)
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.conn = h11.Connection(h11.CLIENT)
+        self._lock = threading.Lock()  # guards self.conn; socket I/O happens outside it
         self.response: h11.Response | None = None
         self.ended = False
 
@@ -115,6 +122,17 @@ class DuplexClient:
 
     def end(self) -> None:
         self._send(h11.EndOfMessage())
+
+    def send_in_background(self, data: bytes) -> threading.Thread:
+        """Send ``data`` and end the body from another thread; join the thread when done."""
+
+        def send_rest() -> None:
+            self.send(data)
+            self.end()
+
+        thread = threading.Thread(target=send_rest, daemon=True)
+        thread.start()
+        return thread
 
     def read_head(self) -> h11.Response:
         while self.response is None:
@@ -140,15 +158,20 @@ class DuplexClient:
         self.sock.close()
 
     def _send(self, event) -> None:
-        self.sock.sendall(self.conn.send(event))
+        with self._lock:
+            data = self.conn.send(event)
+        self.sock.sendall(data)
 
     def _next(self):
         while True:
-            event = self.conn.next_event()
+            with self._lock:
+                event = self.conn.next_event()
             if event is h11.NEED_DATA:
                 data = self.sock.recv(65536)
-                self.conn.receive_data(data)
-                if not data and self.conn.their_state is not h11.DONE:
+                with self._lock:
+                    self.conn.receive_data(data)
+                    closed = not data and self.conn.their_state is not h11.DONE
+                if closed:
                     raise ConnectionError("the server closed the connection mid-response")
                 continue
             if isinstance(event, h11.Response):
@@ -159,7 +182,10 @@ class DuplexClient:
 
 
 def post_chunks(port: int, target: str, chunks: Iterable[bytes], pause: float = 0.0):
-    """POST ``chunks`` chunked (``pause`` seconds between them); return (status, headers, body)."""
+    """POST ``chunks`` chunked (``pause`` seconds between them); return (status, headers, body).
+
+    It reads only once the upload is over: keep responses smaller than the socket buffers.
+    """
     client = DuplexClient(port)
     try:
         client.start(target)

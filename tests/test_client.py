@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import shutil
 import socket
 import subprocess
 import sys
@@ -32,6 +33,7 @@ from spk2img.clients import (
 from spk2img.clients.errors import error_for_status
 from spk2img.clients.retry import RetryPolicy
 from spk2img.core.classical import tfi, tfp
+from spk2img.core.framing import encode_done
 from spk2img.core.light import to_display
 from spk2img.core.spikes import pack_frames, write_spikes
 
@@ -91,15 +93,13 @@ def serve(app) -> Iterator[str]:
 
 
 @pytest.fixture(scope="module")
-def url(tmp_path_factory) -> Iterator[str]:
-    """The real service (a TFP-41 stand-in model for ``net``), ready."""
-    if SERVICE_MISSING:
-        pytest.skip(SERVICE_MISSING)
-    from onnx_models import write_tfp41_model
-
-    model = write_tfp41_model(tmp_path_factory.mktemp("model") / "tfp41.onnx")
+def url(standin_model) -> Iterator[str]:
+    """The real service, in process (``net`` runs the TFP-41 stand-in model), ready."""
     settings = ServiceSettings(
-        model=model, threads=1, max_frames=MAX_FRAMES, max_window=MAX_WINDOW,
+        model=standin_model,
+        threads=1,
+        max_frames=MAX_FRAMES,
+        max_window=MAX_WINDOW,
         retry_after_seconds=0,
     )
     with serve(create_app(settings)) as base_url, Client(base_url) as client:
@@ -169,8 +169,8 @@ def test_tfi_net_and_display_formats_equal_local(url, spikes):
 
 @needs_service
 def test_cli_url_equals_local(url, files, tmp_path):
-    common = ["reconstruct", str(files["dat"]), "--height", str(H), "--width", str(W),
-              "--method", "tfp", "--window", "31", "--stride", "9", "--no-progress"]
+    flags = f"--height {H} --width {W} --method tfp --window 31 --stride 9 --no-progress"
+    common = ["reconstruct", str(files["dat"]), *flags.split()]
     assert cli_main([*common, "--out", str(tmp_path / "local.npz")]) == 0
     assert cli_main([*common, "--out", str(tmp_path / "remote.npz"), "--url", url]) == 0
     local, remote = np.load(tmp_path / "local.npz"), np.load(tmp_path / "remote.npz")
@@ -182,8 +182,10 @@ def test_cli_url_equals_local(url, files, tmp_path):
 @needs_service
 def test_cli_url_reports_service_errors_in_one_line(url, files, tmp_path, capsys):
     window = str(MAX_WINDOW + 2)  # valid locally, over the service's limit
-    code = cli_main(["reconstruct", str(files["npy"]), "--out", str(tmp_path / "x.npz"),
-                     "--method", "tfp", "--window", window, "--centers", "60", "--url", url])
+    flags = f"--method tfp --window {window} --centers 60 --url {url}"
+    code = cli_main(
+        ["reconstruct", str(files["npy"]), "--out", str(tmp_path / "x.npz"), *flags.split()]
+    )
     err = capsys.readouterr().err.strip()
     assert code != 0
     assert len(err.splitlines()) == 1 and f"window {window} is over the limit" in err
@@ -214,7 +216,7 @@ def test_frames_arrive_while_the_upload_goes_on(url, spikes):
 
 @needs_service
 def test_async_client_streams_during_the_upload_and_agrees(url, spikes):
-    async def run() -> tuple[list, list, list]:
+    async def run() -> tuple[list[list], list]:
         gate = asyncio.Event()
 
         async def camera():
@@ -229,12 +231,16 @@ def test_async_client_streams_during_the_upload_and_agrees(url, spikes):
                 live.append((center, image))
                 gate.set()
             whole = [pair async for pair in client.reconstruct(spikes, stride=10, method="tfp")]
-            return live, whole, [await client.health(), await client.ready(), await client.models()]
+            threaded = [
+                pair async for pair in client.reconstruct(iter(spikes), stride=10, method="tfp")
+            ]
+            status = [await client.health(), await client.ready(), await client.models()]
+            return [live, whole, threaded], status
 
-    live, whole, (health, ready, models) = asyncio.run(run())
+    results, (health, ready, models) = asyncio.run(run())
     with Client(url) as client:
         expected = list(client.reconstruct(spikes, stride=10, method="tfp"))
-    for got in (live, whole):
+    for got in results:
         assert_same_frames(got, expected)
     assert health and ready and models["models"][0]["window"] == 41
 
@@ -246,14 +252,12 @@ def test_a_failing_source_is_raised_and_an_abandoned_stream_is_let_go(url, spike
         raise RuntimeError("camera unplugged")
 
     with Client(url) as client:
-        received = []
         with pytest.raises(RuntimeError, match="camera unplugged"):
-            for center, _ in client.reconstruct(broken_camera(), stride=10, method="tfp"):
-                received.append(center)
-        assert received and received[-1] <= 80 - 21
-        for center, _ in client.reconstruct(spikes, stride=10, method="tfp"):
-            break  # closes the stream: the service stops the work and frees its place
-        assert center == 20 and len(list(client.reconstruct(spikes, stride=10, method="tfp"))) == 12
+            list(client.reconstruct(broken_camera(), stride=10, method="tfp"))
+        stream = client.reconstruct(spikes, stride=10, method="tfp")
+        assert next(stream)[0] == 20
+        stream.close()  # abandoned: the service stops the work and frees its place
+        assert len(list(client.reconstruct(spikes, stride=10, method="tfp"))) == 12
 
 
 # --- errors --------------------------------------------------------------------------------
@@ -299,9 +303,14 @@ def test_error_after_the_first_frame_is_a_stream_error(url, spikes):
 
 @pytest.mark.parametrize(
     ("status", "error"),
-    [(400, BadRequest), (404, BadRequest), (405, BadRequest), (415, BadRequest),
-     (422, BadRequest), (413, PayloadTooLarge), (503, Unavailable), (429, Unavailable),
-     (500, ServerError), (502, ServerError)],
+    [
+        *((s, BadRequest) for s in (400, 404, 405, 408, 415, 422)),
+        (413, PayloadTooLarge),
+        (503, Unavailable),
+        (429, Unavailable),
+        (500, ServerError),
+        (502, ServerError),
+    ],
 )
 def test_status_mapping(status, error):
     exc = error_for_status(status, b'{"detail": "what went wrong"}', "3")
@@ -326,9 +335,11 @@ class BusyProxy:
     """A TCP proxy to ``target`` that answers its first ``busy`` connections itself with
     ``503`` and ``Retry-After: 0`` (after reading the request, as a server that is full would)."""
 
-    RESPONSE = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-                b"Retry-After: 0\r\nContent-Length: 20\r\nConnection: close\r\n\r\n"
-                b'{"detail": "busy!"}\n')
+    RESPONSE = (
+        b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+        b"Retry-After: 0\r\nContent-Length: 20\r\nConnection: close\r\n\r\n"
+        b'{"detail": "busy!"}\n'
+    )
 
     def __init__(self, target: str, busy: int):
         self.target_port = int(target.rsplit(":", 1)[1])
@@ -432,6 +443,43 @@ def test_a_silent_service_times_out(spikes):
                 list(client.reconstruct(spikes[:50], stride=STRIDE, method="tfp"))
 
 
+FRAMES_HEAD = b"HTTP/1.1 200 OK\r\nContent-Type: application/x-spk2img-frames\r\n"
+
+
+@pytest.mark.parametrize(
+    ("reply", "error", "message"),
+    [
+        (b"", ConnectionFailed, "closed the connection before answering"),
+        (FRAMES_HEAD + b"Transfer-Encoding: chunked\r\n\r\n", ConnectionFailed, "in the middle"),
+        (b"garbage\r\n\r\n", ConnectionFailed, "broken response"),
+        (b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\nhi", StreamError, "expected a"),
+        (FRAMES_HEAD + b"Content-Length: 8\r\n\r\nXXXX\0\0\0\0", StreamError, "record tag"),
+        (FRAMES_HEAD + b"Content-Length: 0\r\n\r\n", StreamError, "without a DONE"),
+        (FRAMES_HEAD + b"Content-Length: 21\r\n\r\n" + encode_done(3), StreamError, "sent 0"),
+    ],
+)
+def test_broken_responses_raise_typed_errors(spikes, reply, error, message):
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        answering = threading.Thread(target=_answer_once, args=(server, reply), daemon=True)
+        answering.start()
+        with Client(f"http://127.0.0.1:{server.getsockname()[1]}", retries=0) as client:
+            with pytest.raises(error, match=message):
+                list(client.reconstruct(spikes[:50], stride=STRIDE, method="tfp"))
+        answering.join(WAIT_S)
+
+
+def _answer_once(server: socket.socket, reply: bytes) -> None:
+    """Read a request, send ``reply``, and close once the client has finished sending."""
+    conn, _ = server.accept()
+    with conn:
+        conn.recv(1 << 16)
+        conn.sendall(reply)
+        conn.shutdown(socket.SHUT_WR)
+        conn.settimeout(WAIT_S)
+        while conn.recv(1 << 16):
+            pass
+
+
 def test_bad_sources_fail_before_connecting(spikes):
     with Client("http://127.0.0.1:9", retries=0) as client:
         with pytest.raises(ValueError, match="height and width"):
@@ -450,3 +498,42 @@ def test_the_client_imports_nothing_of_the_server():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@needs_service
+def test_the_client_extra_alone_installs_and_reconstructs(url, spikes, files, tmp_path):
+    """A fresh venv with ``pip install ".[client]"``: the client imports, the server's
+    dependencies are absent, and ``spk2img reconstruct --url`` gives the local result."""
+    repo = Path(__file__).resolve().parents[1]
+    src = tmp_path / "src"
+    skip = shutil.ignore_patterns("__pycache__", "*.onnx")  # the client needs no model
+    shutil.copytree(repo / "spk2img", src / "spk2img", ignore=skip)
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(repo / name, src / name)
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", venv], check=True)
+    subprocess.run(
+        [venv / "bin" / "pip", "install", "--quiet", "--no-input", f"{src}[client]"],
+        check=True,
+        capture_output=True,
+    )
+    code = (
+        "import importlib.util, spk2img.clients\n"
+        "print([m for m in ('fastapi', 'onnxruntime', 'torch', 'uvicorn', 'starlette')"
+        " if importlib.util.find_spec(m)])"
+    )
+    absent = subprocess.run(
+        [venv / "bin" / "python", "-c", code],
+        check=True,
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+    )
+    assert absent.stdout.strip() == "[]"
+    out = tmp_path / "remote.npz"
+    flags = f"--method tfp --stride {STRIDE} --no-progress --url {url}"
+    command = [venv / "bin" / "spk2img", "reconstruct", files["npz"], "--out", out, *flags.split()]
+    subprocess.run(command, check=True, capture_output=True, cwd=tmp_path)
+    remote = np.load(out)
+    np.testing.assert_array_equal(remote["centers"], stride_centers(41))
+    np.testing.assert_array_equal(remote["frames"], tfp(spikes, stride_centers(41), 41))

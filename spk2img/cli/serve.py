@@ -7,6 +7,9 @@ from pathlib import Path
 
 from spk2img.core.errors import InputError
 
+DEFAULT_MODEL_HINT = (
+    " (the shipped default model is not installed: pass --model MODEL.onnx or set SPK2IMG_MODEL)"
+)
 LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
 
 # one flag per field of spk2img.service.settings.ServiceSettings (a test keeps them in step);
@@ -50,23 +53,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         import uvicorn
-        from pydantic import ValidationError
 
         from spk2img.service.app import create_app
-        from spk2img.service.settings import ServiceSettings
     except ImportError as exc:
-        raise InputError(f"serving needs the serve extra: pip install 'spk2img[serve]' ({exc})")
-
-    given = {name: getattr(args, name) for name, _, _ in FLAGS if getattr(args, name) is not None}
-    try:
-        settings = ServiceSettings(**given)
-    except ValidationError as exc:
-        raise InputError(f"bad settings: {exc}") from exc
-    if not settings.model_path.is_file():
         raise InputError(
-            f"no model file at {settings.model_path}: pass --model MODEL.onnx or set "
-            "SPK2IMG_MODEL (the shipped default model is not installed)"
-        )
+            f"serving needs the serve extra: pip install 'spk2img[serve]' ({exc})"
+        ) from exc
+
+    settings = settings_from_args(args)
+    if not settings.model_path.is_file():
+        hint = DEFAULT_MODEL_HINT if settings.model is None else ""
+        raise InputError(f"no model file at {settings.model_path}{hint}")
     uvicorn.run(
         create_app(settings),
         host=settings.host,
@@ -75,3 +72,23 @@ def run(args: argparse.Namespace) -> int:
         timeout_graceful_shutdown=5,
     )
     return 0
+
+
+def settings_from_args(args: argparse.Namespace):
+    """:class:`~spk2img.service.settings.ServiceSettings` from the environment, overridden by
+    the flags given (raises :class:`InputError` for a bad value)."""
+    from pydantic import ValidationError
+
+    from spk2img.service.settings import ServiceSettings
+
+    given = {name: getattr(args, name) for name, _, _ in FLAGS if getattr(args, name) is not None}
+    try:
+        return ServiceSettings(**given)
+    except ValidationError as exc:
+        problems = "; ".join(_setting_problem(error) for error in exc.errors())
+        raise InputError(f"bad settings: {problems}") from exc
+
+
+def _setting_problem(error: dict) -> str:
+    name = "_".join(str(part) for part in error["loc"])
+    return f"--{name.replace('_', '-')} (SPK2IMG_{name.upper()}): {error['msg']}"

@@ -26,14 +26,17 @@ from spk2img.core.framing import (
     RecordParser,
 )
 
-from .errors import MAX_DETAIL_CHARS, ConnectionFailed, StreamError, error_for_status
+from .errors import ConnectionFailed, StreamError, error_for_status
 from .sources import Upload
 
 Frame = tuple[int, np.ndarray]
 """``(centre, image)``: the centre's frame index and its ``(H, W)`` image — float32 linear
-intensity in [0, 1] for ``format="float32"``, uint8 display values for ``"uint8"``/``"png"``."""
+intensity in [0, 1] for ``format="float32"``, uint8 display values for ``"uint8"``/``"png"``
+(read-only: a view of the response; copy it to change it)."""
 
 USER_AGENT = f"spk2img-client/{__version__}"
+ERROR_BODY_BYTES = 1 << 14
+"""How much of an error response's body is kept for its message."""
 
 
 @dataclass(frozen=True)
@@ -150,9 +153,9 @@ class Exchange:
                 if self._status == 200 and media_type != MEDIA_TYPE.encode():
                     raise StreamError(f"expected a {MEDIA_TYPE} response, got {media_type!r}")
             elif isinstance(event, h11.Data) and self._status == 200:
-                yield from self._frames_of(self._records.feed(event.data))
+                yield from self._frames_of(self._parse(event.data))
             elif isinstance(event, h11.Data):
-                self._error_body += event.data[: MAX_DETAIL_CHARS * 4 - len(self._error_body)]
+                self._error_body += event.data[: ERROR_BODY_BYTES - len(self._error_body)]
             elif isinstance(event, h11.EndOfMessage):
                 self._end_of_response()
             elif isinstance(event, h11.ConnectionClosed):
@@ -166,12 +169,24 @@ class Exchange:
                 try:
                     event = self._conn.next_event()
                 except h11.RemoteProtocolError as exc:
-                    raise ConnectionFailed(f"broken response from the service: {exc}") from exc
+                    if data:
+                        reason = f"sent a broken response ({exc})"
+                    elif self._status is None:
+                        reason = "closed the connection before answering"
+                    else:
+                        reason = "closed the connection in the middle of its response"
+                    raise ConnectionFailed(f"the service {reason}") from exc
                 if event in (h11.NEED_DATA, h11.PAUSED):
                     return events
                 events.append(event)
                 if isinstance(event, h11.ConnectionClosed):
                     return events
+
+    def _parse(self, data: bytes) -> list[Record]:
+        try:
+            return self._records.feed(data)
+        except FramingError as exc:
+            raise StreamError(f"malformed response: {exc}") from exc
 
     def _frames_of(self, records: Iterable[Record]) -> Iterator[Frame]:
         for record in records:

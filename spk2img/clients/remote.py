@@ -1,5 +1,4 @@
-"""``spk2img reconstruct --url``: the CLI's work done by a running service, through :class:`Client`.
-"""
+"""``spk2img reconstruct --url``: the CLI's work done by a running service, through the client."""
 
 from __future__ import annotations
 
@@ -54,8 +53,14 @@ def reconstruct_file_remote(
                 method=args.method,
                 window=args.window,
             )
-            bar = tqdm(frames, total=n_out, unit="frame", disable=args.no_progress,
-                       file=sys.stderr, delay=PROGRESS_DELAY_S)
+            bar = tqdm(
+                frames,
+                total=n_out,
+                unit="frame",
+                disable=args.no_progress,
+                file=sys.stderr,
+                delay=PROGRESS_DELAY_S,
+            )
             return collect(bar, height, width)
     except Spk2ImgError as exc:
         raise RemoteError(f"{args.url}: {exc}") from exc

@@ -49,9 +49,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
     settings = state.settings
-    state.model = await asyncio.to_thread(
-        OnnxModel, settings.model_path, settings.intra_op_threads
-    )
+    state.model = await asyncio.to_thread(OnnxModel, settings.model_path, settings.intra_op_threads)
     state.pool = InferencePool(settings.job_workers, settings.max_queue)
     state.metrics.watch_pool(lambda: state.pool.jobs, lambda: state.pool.admitted)
     warm_up = asyncio.create_task(_warm_up(state))

@@ -1,4 +1,4 @@
-"""Pydantic models of the HTTP API: query parameters, JSON answers and errors (OpenAPI uses them)."""
+"""Pydantic models of the HTTP API: query parameters, JSON answers, errors (OpenAPI shows them)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ CENTERS_PATTERN = r"^[0-9]{1,12}(,[0-9]{1,12})*$"
 
 
 class ReconstructQuery(BaseModel):
-    """Query parameters of ``POST /v1/reconstruct``: give exactly one of ``centers`` and ``stride``."""
+    """Query parameters of ``POST /v1/reconstruct``; exactly one of ``centers`` and ``stride``."""
 
     model_config = ConfigDict(extra="forbid")
 

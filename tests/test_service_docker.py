@@ -1,0 +1,94 @@
+"""docker/Dockerfile's install steps, replayed without Docker: its COPY lines into a scratch
+"image", its ``pip install`` into a fresh virtual environment (no system site packages), then
+``spk2img serve`` from that environment. The runtime must not pull in torch."""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import pytest
+from service_support import OCTET, parse_frames, run_server, stream_bytes
+
+from spk2img.core.framing import DoneRecord
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCKERFILE = ROOT / "docker" / "Dockerfile"
+INSTALL_SECONDS = 540
+MODULES = ("torch", "onnxruntime", "fastapi")
+
+
+def dockerfile_instructions(text: str) -> list[tuple[str, str]]:
+    """``(INSTRUCTION, arguments)`` pairs, continuation lines joined, comments dropped."""
+    joined = text.replace("\\\n", " ")
+    lines = (line.strip() for line in joined.splitlines())
+    return [tuple(line.split(None, 1)) for line in lines if line and not line.startswith("#")]
+
+
+def install_steps(text: str) -> tuple[str, list[tuple[list[str], str]], list[str]]:
+    """The WORKDIR, the COPY steps and the ``pip install`` arguments up to the install."""
+    workdir, copies = "/", []
+    for instruction, args in dockerfile_instructions(text):
+        if instruction == "WORKDIR":
+            workdir = args
+        elif instruction == "COPY":
+            *sources, dest = shlex.split(args)
+            copies.append((sources, dest))
+        elif instruction == "RUN" and "pip install" in args:
+            (command,) = [c for c in args.split("&&") if c.strip().startswith("pip install")]
+            return workdir, copies, shlex.split(command)[2:]
+    raise AssertionError("docker/Dockerfile has no RUN pip install")
+
+
+def test_dockerfile_runtime_is_slim():
+    text = DOCKERFILE.read_text()
+    instructions = dockerfile_instructions(text)
+    assert instructions[0] == ("FROM", "python:3.11-slim")
+    _, _, pip_args = install_steps(text)
+    assert pip_args[-1] == ".[serve]"
+    assert ("USER", "spk2img") in instructions
+    health = dict(instructions)["HEALTHCHECK"]
+    assert "/healthz" in health
+    assert shlex.split(dict(instructions)["CMD"].strip("[]").replace(",", " ")) == [
+        "spk2img", "serve", "--host", "0.0.0.0", "--port", "8000",
+    ]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_dockerfile_install_serves_without_torch(tmp_path, standin_model):
+    workdir, copies, pip_args = install_steps(DOCKERFILE.read_text())
+    image = tmp_path / "image"
+    cwd = image / workdir.lstrip("/")
+    cwd.mkdir(parents=True)
+    for sources, dest in copies:
+        for source in sources:
+            target = (cwd / dest) / Path(source).name if dest.endswith("/") else cwd / dest
+            if (ROOT / source).is_dir():
+                shutil.copytree(ROOT / source, target, ignore=shutil.ignore_patterns("__pycache__"))
+            else:
+                shutil.copy2(ROOT / source, target)
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=120)
+    python = venv / "bin" / "python"
+    install = subprocess.run(
+        [str(python), "-m", "pip", "install", "--quiet", *pip_args],
+        cwd=cwd, capture_output=True, text=True, timeout=INSTALL_SECONDS,
+    )  # fmt: skip
+    assert install.returncode == 0, install.stderr[-3000:]
+
+    probe = f"import importlib.util as u; print(*(bool(u.find_spec(m)) for m in {MODULES}))"
+    found = subprocess.run([str(python), "-c", probe], capture_output=True, text=True, timeout=60)
+    assert found.stdout.split() == ["False", "True", "True"], "onnxruntime and fastapi, no torch"
+    assert not (venv / "lib" / "python3.11" / "site-packages" / "torch").exists()
+
+    with run_server(standin_model, program=[str(venv / "bin" / "spk2img")]) as server:
+        assert server.get("/healthz").json() == {"status": "ok"}
+        _, body = stream_bytes(50, 8, 8)
+        response = httpx.post(f"{server.url}/v1/reconstruct?height=8&width=8&centers=20,29",
+                              content=body, headers=OCTET, timeout=30)  # fmt: skip
+        frames, done = parse_frames(response.content)
+        assert isinstance(done, DoneRecord) and [f.center for f in frames] == [20, 29]

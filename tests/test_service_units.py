@@ -1,0 +1,127 @@
+"""Service pieces without a server: settings and flags, readiness, the pool, the per-request job."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import httpx
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from service_support import OCTET, stream_bytes
+
+from spk2img.cli import build_parser, main
+from spk2img.cli.serve import FLAGS, settings_from_args
+from spk2img.core.errors import InputError
+from spk2img.core.methods import method_plan
+from spk2img.service.app import create_app
+from spk2img.service.inference import InferencePool
+from spk2img.service.reconstruction import Cancelled, StreamJob
+from spk2img.service.schemas import ReconstructQuery
+from spk2img.service.settings import ServiceSettings
+
+
+def test_every_setting_has_a_flag():
+    assert [name for name, _, _ in FLAGS] == list(ServiceSettings.model_fields)
+
+
+def test_flags_win_over_the_environment(monkeypatch):
+    monkeypatch.setenv("SPK2IMG_MAX_QUEUE", "3")
+    monkeypatch.setenv("SPK2IMG_MAX_FRAMES", "77")
+    args = build_parser().parse_args(["serve", "--max-queue", "5", "--threads", "4"])
+    chosen = settings_from_args(args)
+    assert (chosen.max_queue, chosen.max_frames, chosen.threads) == (5, 77, 4)
+    assert chosen.job_workers == 4 and chosen.intra_op_threads == 1
+    assert ServiceSettings(threads=4, workers=1).intra_op_threads == 4
+
+
+def test_bad_settings_are_input_errors(monkeypatch):
+    monkeypatch.setenv("SPK2IMG_THREADS", "0")
+    with pytest.raises(InputError, match=r"--threads \(SPK2IMG_THREADS\)"):
+        settings_from_args(build_parser().parse_args(["serve"]))
+
+
+def test_serve_without_the_model_file_fails_clearly(tmp_path, capsys):
+    assert main(["serve", "--model", str(tmp_path / "missing.onnx")]) == 2
+    assert "no model file at" in capsys.readouterr().err
+
+
+def test_not_ready_before_the_model_is_loaded(standin_model):
+    """Before the lifespan has run: alive, not ready, reconstruct and models answer 503."""
+    app = create_app(ServiceSettings(model=standin_model, retry_after_seconds=7))
+
+    async def ask():
+        transport = httpx.ASGITransport(app=app)  # runs no lifespan
+        async with httpx.AsyncClient(transport=transport, base_url="http://test") as client:
+            return (
+                await client.get("/healthz"),
+                await client.get("/readyz"),
+                await client.get("/v1/models"),
+                await client.post("/v1/reconstruct?centers=20", content=b"x", headers=OCTET),
+            )
+
+    health, ready, models, reconstruct = asyncio.run(ask())
+    assert health.status_code == 200
+    for response in (ready, models, reconstruct):
+        assert response.status_code == 503 and response.headers["retry-after"] == "7"
+        assert "not ready" in response.json()["detail"]
+
+
+def test_pool_admits_workers_plus_queue_and_releases_after_the_last_job():
+    pool = InferencePool(workers=1, max_queue=1)
+    first, second = pool.admit(), pool.admit()
+    assert first and second and pool.admit() is None
+    release = threading.Event()
+
+    async def scenario():
+        job = asyncio.ensure_future(first.run(release.wait, 10))
+        await asyncio.sleep(0.05)
+        job.cancel()  # the request gave up while its job runs
+        first.close()
+        assert pool.admitted == 2 and pool.jobs == 1  # the place is held until the job ends
+        release.set()
+        for _ in range(100):
+            if pool.admitted == 1:
+                break
+            await asyncio.sleep(0.01)
+
+    asyncio.run(scenario())
+    assert pool.admitted == 1 and pool.jobs == 0
+    second.close()
+    second.close()  # closing twice gives back one place
+    assert pool.admitted == 0 and pool.admit() is not None
+    pool.shutdown()
+
+
+H, W = 8, 12
+_, BODY = stream_bytes(60, H, W, seed=11)
+
+
+def _job(method: str, **query) -> StreamJob:
+    q = ReconstructQuery(height=H, width=W, method=method, **query)
+    plan = method_plan(q.method, q.centers, q.stride, q.window)
+    return StreamJob(q, plan, ServiceSettings(), lambda w: w.mean(axis=1) / 0.6)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    method=st.sampled_from(["net", "tfp", "tfi"]),
+    cuts=st.lists(st.integers(0, len(BODY)), max_size=12),
+)
+def test_the_job_gives_the_same_records_for_any_split(method, cuts):
+    whole = _job(method, stride=3, window=5)
+    expected = whole.feed(BODY) + whole.finish()
+    job = _job(method, stride=3, window=5)
+    bounds = [0, *sorted(cuts), len(BODY)]
+    records = []
+    for a, b in zip(bounds, bounds[1:], strict=False):
+        records += job.feed(BODY[a:b])
+    assert records + job.finish() == expected
+
+
+def test_a_cancelled_job_stops():
+    job = _job("tfp", stride=1, window=3)
+    job.cancel()
+    with pytest.raises(Cancelled):
+        job.feed(BODY)
