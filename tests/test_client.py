@@ -168,8 +168,9 @@ def test_tfi_net_and_display_formats_equal_local(url, spikes):
 
 
 @needs_service
-def test_cli_url_equals_local(url, files, tmp_path):
-    flags = f"--height {H} --width {W} --method tfp --window 31 --stride 9 --no-progress"
+@pytest.mark.parametrize("selection", ["--stride 9", "--centers 90,40,60"])
+def test_cli_url_equals_local(url, files, tmp_path, selection):
+    flags = f"--height {H} --width {W} --method tfp --window 31 {selection} --no-progress"
     common = ["reconstruct", str(files["dat"]), *flags.split()]
     assert cli_main([*common, "--out", str(tmp_path / "local.npz")]) == 0
     assert cli_main([*common, "--out", str(tmp_path / "remote.npz"), "--url", url]) == 0
@@ -500,6 +501,7 @@ def test_the_client_imports_nothing_of_the_server():
     assert out.stdout.strip() == "[]"
 
 
+@pytest.mark.slow  # 17 s on an idle machine, up to a minute on a busy one
 @needs_service
 def test_the_client_extra_alone_installs_and_reconstructs(url, spikes, files, tmp_path):
     """A fresh venv with ``pip install ".[client]"``: the client imports, the server's

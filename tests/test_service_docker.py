@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import json
 import shlex
 import shutil
 import subprocess
@@ -53,7 +54,7 @@ def test_dockerfile_runtime_is_slim():
     assert ("USER", "spk2img") in instructions
     health = dict(instructions)["HEALTHCHECK"]
     assert "/healthz" in health
-    assert shlex.split(dict(instructions)["CMD"].strip("[]").replace(",", " ")) == [
+    assert json.loads(dict(instructions)["CMD"]) == [
         "spk2img", "serve", "--host", "0.0.0.0", "--port", "8000",
     ]  # fmt: skip
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import httpx
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from service_support import OCTET, DuplexClient, parse_frames, post_chunks, stream_bytes
 
@@ -52,9 +52,7 @@ TARGETS = [
 ]
 
 
-@settings(
-    max_examples=24, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
+@settings(max_examples=24, deadline=None)
 @given(
     which=st.integers(0, len(TARGETS) - 1),
     cuts=st.lists(st.integers(0, len(SMALL)), max_size=6),

@@ -90,7 +90,12 @@ def load_predictor(args: argparse.Namespace):
 
 
 def _reconstruct_remote(args: argparse.Namespace, stride: int | None):
-    from spk2img.clients.remote import reconstruct_file_remote
+    if args.model or args.checkpoint or args.backend != "onnx":
+        raise InputError("--url runs the service's own model: drop --model/--checkpoint/--backend")
+    try:
+        from spk2img.clients.remote import reconstruct_file_remote
+    except ImportError as exc:
+        raise InputError(f"--url needs the client extra: pip install 'spk2img[client]' ({exc})") from exc
 
     return reconstruct_file_remote(args, stride)
 

@@ -60,9 +60,11 @@ def stream_frames(
 
 def _connect(service: ServiceURL, timeout: float | None) -> socket.socket:
     try:
-        return socket.create_connection((service.host, service.port), timeout=timeout)
+        sock = socket.create_connection((service.host, service.port), timeout=timeout)
     except OSError as exc:
         raise ConnectionFailed(f"cannot connect to {service}: {exc}") from exc
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # live frames go out at once
+    return sock
 
 
 def _recv(sock: socket.socket, service: ServiceURL, timeout: float | None) -> bytes:

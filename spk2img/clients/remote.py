@@ -12,7 +12,6 @@ from spk2img.core.errors import InputError
 from spk2img.core.methods import method_plan
 from spk2img.core.spikes import DatStream, read_spikes
 from spk2img.core.stream import collect
-from spk2img.core.windows import parse_centers
 
 from .errors import Spk2ImgError
 from .sync import Client
@@ -41,7 +40,7 @@ def reconstruct_file_remote(
     plan = method_plan(args.method, args.centers, stride, args.window)
     n_out = len(plan.centers_for(n_frames))
     source = args.input if isinstance(spikes, DatStream) else np.asarray(spikes)
-    centers = None if args.centers is None else parse_centers(args.centers)
+    centers = None if plan.centers is None else plan.centers.tolist()
     try:
         with Client(args.url) as client:
             frames = client.reconstruct(
@@ -49,7 +48,7 @@ def reconstruct_file_remote(
                 height,
                 width,
                 centers=centers,
-                stride=None if centers else stride,
+                stride=stride,
                 method=args.method,
                 window=args.window,
             )

@@ -94,7 +94,7 @@ class RecordParser:
             tag, length = _HEAD.unpack_from(self._buf)
             if len(self._buf) < _HEAD.size + length:
                 break
-            payload = bytes(self._buf[_HEAD.size : _HEAD.size + length])
+            payload = bytearray(self._buf[_HEAD.size : _HEAD.size + length])  # writable frames
             del self._buf[: _HEAD.size + length]
             records.append(_decode(tag, payload))
         return records

@@ -11,7 +11,6 @@ first record, so an error found before the first frame is still a JSON 4xx; afte
 from __future__ import annotations
 
 import asyncio
-import logging
 
 from starlette.responses import Response
 from starlette.types import Receive, Scope, Send
@@ -22,8 +21,6 @@ from .errors import RequestError, as_request_error, error_response
 from .inference import Admission
 from .metrics import ServiceMetrics
 from .reconstruction import StreamJob
-
-logger = logging.getLogger("spk2img.service")
 
 
 class ClientGone(Exception):
@@ -56,9 +53,10 @@ class FramesResponse(Response):
                     if message["type"] == "http.disconnect":
                         raise ClientGone
                     more = message.get("more_body", False)
-                    await self._send_records(send, await self._run(self.job.feed, message["body"]))
+                    records = await self.admission.run(self.job.feed, message["body"])
+                    await self._send_records(send, records)
                 disconnect = asyncio.ensure_future(receive())
-                records = await _unless_gone(self._run(self.job.finish), disconnect)
+                records = await _unless_gone(self.admission.run(self.job.finish), disconnect)
                 await self._send_records(send, records, disconnect)
                 await self._send_last(send, encode_done(self._frames))
         except ClientGone:
@@ -76,9 +74,6 @@ class FramesResponse(Response):
             method = self.job.query.method
             self.metrics.spike_frames.labels(method).inc(self.job.decoder.frames_decoded)
             self.metrics.frames.labels(method, self.job.query.format).inc(self._frames)
-
-    async def _run(self, fn, *args) -> list[bytes]:
-        return await self.admission.run(fn, *args)
 
     async def _start(self, send: Send) -> None:
         if not self._started:

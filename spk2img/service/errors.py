@@ -46,7 +46,7 @@ def validation_message(exc: RequestValidationError) -> str:
 
 
 def install_error_handlers(app: FastAPI) -> None:
-    """Answer validation, input and request errors as ``{"detail": str}``."""
+    """Answer validation, input, request and unexpected errors as ``{"detail": str}``."""
 
     async def on_validation(_: Request, exc: RequestValidationError) -> JSONResponse:
         return error_response(RequestError(422, validation_message(exc)))
@@ -57,6 +57,10 @@ def install_error_handlers(app: FastAPI) -> None:
     async def on_request(_: Request, exc: RequestError) -> JSONResponse:
         return error_response(exc)
 
+    async def on_unexpected(_: Request, exc: Exception) -> JSONResponse:
+        return error_response(as_request_error(exc))
+
     app.add_exception_handler(RequestValidationError, on_validation)
     app.add_exception_handler(InputError, on_input)
     app.add_exception_handler(RequestError, on_request)
+    app.add_exception_handler(Exception, on_unexpected)

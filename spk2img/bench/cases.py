@@ -1,0 +1,77 @@
+"""The fixed simulated benchmark set: 41-frame windows with the ground truth at their centre.
+
+Five scene classes (static, slow and fast motion at normal light, dim and bright light with slow
+motion), each filmed half by the noise-free sensor of spike-REDS and half by a real-like one
+(SPEC §2). Seeds start from :data:`BENCH_SEED`, disjoint from training's (``[seed, index]`` and
+``[seed * 1000 + rank, index]`` with small seeds) and from validation's (987,654,321).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from spk2img.core.scenes import random_scene
+from spk2img.core.simulator import SensorConfig, ground_truth, simulate
+from spk2img.core.windows import NET_WINDOW
+
+BENCH_SEED = 2_718_281_828
+SCENE_CLASSES: dict[str, tuple[str, str]] = {
+    "static": ("static", "normal"),
+    "slow": ("slow", "normal"),
+    "fast": ("fast", "normal"),
+    "dim": ("slow", "dim"),
+    "bright": ("slow", "bright"),
+}
+"""Scene class -> (motion, brightness) of :func:`~spk2img.core.scenes.random_scene`."""
+SENSORS = {"ideal": SensorConfig.ideal(), "real": SensorConfig.real()}
+CENTER = NET_WINDOW // 2
+"""The reconstructed frame: the centre of each 41-frame window."""
+
+
+@dataclass(frozen=True)
+class BenchSet:
+    """``spikes (N, 41, H, W) uint8`` 0/1 windows and ``truth (N, H, W) float32`` linear
+    intensity at frame :data:`CENTER`; ``classes`` and ``sensors`` name each window's scene
+    class and sensor."""
+
+    spikes: np.ndarray
+    truth: np.ndarray
+    classes: list[str]
+    sensors: list[str]
+
+    def __len__(self) -> int:
+        return len(self.classes)
+
+    def save(self, directory: Path) -> Path:
+        """Write ``spikes.npy`` (which workers memory-map), ``truth.npy`` and ``cases.json``."""
+        directory.mkdir(parents=True, exist_ok=True)
+        np.save(directory / "spikes.npy", self.spikes)
+        np.save(directory / "truth.npy", self.truth)
+        meta = {"classes": self.classes, "sensors": self.sensors}
+        (directory / "cases.json").write_text(json.dumps(meta))
+        return directory
+
+
+def load_spikes(directory: Path) -> np.ndarray:
+    """The saved windows ``(N, 41, H, W) uint8``, memory-mapped (read-only)."""
+    return np.load(directory / "spikes.npy", mmap_mode="r")
+
+
+def benchmark_set(per_class: int, height: int, width: int) -> BenchSet:
+    """``per_class`` windows of each of :data:`SCENE_CLASSES` at ``height x width``, sensors
+    alternating ideal and real; deterministic."""
+    spikes, truth, classes, sensors = [], [], [], []
+    for i, (name, (motion, brightness)) in enumerate(SCENE_CLASSES.items()):
+        for j in range(per_class):
+            sensor = "ideal" if j % 2 == 0 else "real"
+            rng = np.random.default_rng([BENCH_SEED, i, j])
+            scene = random_scene(rng, height, width, motion, brightness)
+            spikes.append(simulate(scene, NET_WINDOW, SENSORS[sensor], rng))
+            truth.append(ground_truth(scene, [CENTER])[0])
+            classes.append(name)
+            sensors.append(sensor)
+    return BenchSet(np.stack(spikes), np.stack(truth), classes, sensors)

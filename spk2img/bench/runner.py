@@ -1,0 +1,245 @@
+"""One benchmark run: the benchmark set, every row measured in its own process, the scores,
+the machine's matmul rate and the service under load, gathered into one JSON-able dict."""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+from . import artifacts
+from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
+from .rows import NetRow, Row, TfiRow, TfpRow, row_to_json
+from .scores import best_tfp_window, max_abs_error, quality
+from .service_load import service_benchmark
+from .worker import WorkerError, run_job
+
+REFERENCE_SIZE = (250, 400)
+"""The PKU camera's frame: MACs are reported per frame of this size."""
+WORKER_TIMEOUT_S = 3600
+SERVICE_LEVELS = (1, 4)
+"""Concurrent clients of the service load test."""
+
+
+@dataclass(frozen=True)
+class Scale:
+    """How big a run is."""
+
+    height: int
+    """Frame height of the benchmark set and the timings (pixels)."""
+    width: int
+    """Frame width (pixels)."""
+    per_class: int
+    """Windows per scene class in the benchmark set."""
+    repeats: int
+    """Timed calls per row and thread count (after one warm-up)."""
+    members: tuple[str, ...]
+    """Family members benchmarked with random weights."""
+    service_requests: int
+    """Requests per number of concurrent clients in the service load test."""
+
+
+FULL = Scale(*REFERENCE_SIZE, per_class=4, repeats=5, members=("paper", "small", "tiny"),
+             service_requests=24)  # fmt: skip
+QUICK = Scale(64, 96, per_class=2, repeats=3, members=("tiny",), service_requests=8)
+
+
+@dataclass(frozen=True)
+class BenchOptions:
+    """What one ``spk2img bench`` measures."""
+
+    scale: Scale
+    threads: tuple[int, ...] = (1, 2)
+    """Thread counts of every timing."""
+    trained: tuple[tuple[str, Path], ...] = ()
+    """Extra trained checkpoints ``(name, path)``, benchmarked and scored like the shipped one."""
+    service: bool = True
+    """Whether to load-test the HTTP service."""
+    command: str = "spk2img bench"
+    """The command line that reproduces this run (for the report)."""
+
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a run measures, in table order: rows to measure and, in their place, the entries of
+    rows that could not be built (an export failed); and every set of network weights."""
+
+    items: list[Row | dict]
+    weights: list[artifacts.Weights]
+
+
+def run_benchmark(options: BenchOptions, log: Log) -> dict:
+    """Measure everything ``options`` asks for; see :mod:`spk2img.bench.report` for the fields."""
+    scale = options.scale
+    started = datetime.now(UTC)
+    with tempfile.TemporaryDirectory(prefix="spk2img-bench-") as tmp:
+        work = Path(tmp)
+        log(f"simulating the benchmark set ({len(SCENE_CLASSES) * scale.per_class} windows of "
+            f"{scale.height}x{scale.width})")  # fmt: skip
+        cases = benchmark_set(scale.per_class, scale.height, scale.width)
+        cases_dir = cases.save(work / "cases")
+        plan = plan_rows(options, cases, work, log)
+        log("measuring the fp32 matmul rate")
+        matmul = run_job({"job": "matmul", "threads": list(options.threads),
+                          "repeats": scale.repeats})["gflops"]  # fmt: skip
+        entries, images = [], {}
+        for i, item in enumerate(plan.items):
+            if isinstance(item, dict):
+                entries.append(item)
+                continue
+            entries.append(measure(item, options, cases_dir, work / f"row{i}.npy"))
+            if entries[-1]["error"] is None:
+                images[i] = np.load(work / f"row{i}.npy")
+            log(f"[{i + 1}/{len(plan.items)}] {item.label}, {item.backend}: "
+                f"{progress_text(entries[-1])}")  # fmt: skip
+        score(entries, plan.items, images, cases)
+        sizes = {"reference": REFERENCE_SIZE, "timed": (scale.height, scale.width)}
+        costs = {w.name: artifacts.cost(w, sizes) for w in plan.weights}
+        for entry in entries:
+            entry.update(costs.get(entry["weights"], {"params": 0, "macs": None}))
+        service = (
+            load_service(options, plan.items, entries, cases, log) if options.service else None
+        )
+    return {
+        "command": options.command,
+        "date": started.isoformat(timespec="seconds"),
+        "machine": machine(),
+        "settings": {"height": scale.height, "width": scale.width, "repeats": scale.repeats,
+                     "threads": list(options.threads), "reference_size": list(REFERENCE_SIZE)},
+        "cases": {"count": len(cases), "classes": list(SCENE_CLASSES), "seed": BENCH_SEED,
+                  "per_class": scale.per_class, "sensors": sorted(set(cases.sensors))},
+        "matmul_gflops": matmul,
+        "rows": entries,
+        "service": service,
+    }  # fmt: skip
+
+
+def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> Plan:
+    """Classical rows first, then each set of weights (random members, the shipped model, the
+    trained checkpoints given) by backend, its ONNX graphs exported into ``work``."""
+    best = best_tfp_window(cases)
+    log(f"best single TFP window on the benchmark set: {best}")
+    tfp_rows = [TfpRow(41), TfpRow(best, "best single window")]
+    if best == tfp_rows[0].window:
+        tfp_rows = [TfpRow(best, "also the best single window")]
+    items: list[Row | dict] = [*tfp_rows, TfiRow()]
+    weights = [artifacts.random_member(m, work) for m in options.scale.members]
+    if (default := artifacts.shipped()) is not None:
+        weights.append(default)
+    else:
+        log("the shipped model is not installed: no shipped rows")
+    weights += [artifacts.Weights(name, path, trained=True) for name, path in options.trained]
+    for w in weights:
+        log(f"exporting {w.name}")
+        rows, failed = artifacts.net_rows(w, work)
+        items += rows
+        for backend, reason in failed.items():
+            log(f"export of {w.name} for {backend} failed: {reason}")
+            items.append(failed_export(w, backend, reason))
+    return Plan(items, weights)
+
+
+def measure(row: Row, options: BenchOptions, cases_dir: Path, images: Path) -> dict:
+    """Run ``row`` in a worker that saves its images to ``images``: the row's entry with its
+    timings and peak RSS, or its ``error``."""
+    scored = not isinstance(row, NetRow) or row.trained
+    spec = {"job": "row", "row": row_to_json(row), "threads": list(options.threads),
+            "repeats": options.scale.repeats, "warmup": 1, "cases": str(cases_dir),
+            "score": scored, "outputs": str(images)}  # fmt: skip
+    entry = {"label": row.label, "kind": row.kind, "backend": row.backend, "scored": scored,
+             "weights": getattr(row, "weights", None), "error": None}  # fmt: skip
+    try:
+        entry.update(run_job(spec, WORKER_TIMEOUT_S))
+    except WorkerError as exc:
+        entry["error"] = str(exc)
+    return entry
+
+
+def failed_export(weights: artifacts.Weights, backend: str, reason: str) -> dict:
+    """The entry of a row whose ONNX graph could not be made."""
+    label = NetRow(weights.name, backend, "", weights.trained).label
+    return {"label": label, "kind": "net", "backend": backend, "scored": weights.trained,
+            "weights": weights.name, "error": f"export failed: {reason}"}  # fmt: skip
+
+
+def score(
+    entries: list[dict], items: list[Row | dict], images: dict[int, np.ndarray], cases: BenchSet
+) -> None:
+    """Add ``quality`` to scored entries and ``max_abs_error`` against the torch row of the same
+    weights to network entries, from the ``images`` of each measured item (by index)."""
+    reference = {
+        item.weights: images.get(i)
+        for i, item in enumerate(items)
+        if isinstance(item, NetRow) and item.backend == "torch"
+    }
+    for i, image in images.items():
+        item, entry = items[i], entries[i]
+        if entry["scored"]:
+            entry["quality"] = quality(image, cases)
+        if isinstance(item, NetRow) and reference.get(item.weights) is not None:
+            entry["max_abs_error"] = max_abs_error(image, reference[item.weights])
+
+
+def load_service(
+    options: BenchOptions, items: list[Row | dict], entries: list[dict], cases: BenchSet, log: Log
+) -> dict:
+    """The service load test on the shipped model's graph — or, without one, the first ONNX
+    grid_sample graph that ran."""
+    served = [
+        item for item, entry in zip(items, entries, strict=True)
+        if isinstance(item, NetRow) and item.backend == "onnx" and entry["error"] is None
+    ]  # fmt: skip
+    served.sort(key=lambda row: row.weights != "shipped")
+    if not served:
+        return {"error": "no ONNX graph ran, so there is nothing to serve"}
+    log(f"load-testing the service with {served[0].label} ({', '.join(map(str, SERVICE_LEVELS))} "
+        "concurrent clients)")  # fmt: skip
+    try:
+        result = service_benchmark(Path(served[0].path), np.array(cases.spikes[0]),
+                                   max(options.threads), SERVICE_LEVELS,
+                                   options.scale.service_requests)  # fmt: skip
+    except (RuntimeError, OSError) as exc:
+        return {"error": f"{type(exc).__name__}: {exc}"}
+    return {"label": served[0].label, **result}
+
+
+def progress_text(entry: dict) -> str:
+    if entry["error"]:
+        return f"failed ({entry['error']})"
+    return ", ".join(
+        f"{ms:.1f} ms/frame at {t} thread(s)" for t, ms in entry["ms_per_frame"].items()
+    )
+
+
+def machine() -> dict:
+    """CPU model (``/proc/cpuinfo``), cores, memory and software versions of this machine."""
+    info = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "memory_gib": None, "python": platform.python_version(),
+            "platform": platform.platform()}  # fmt: skip
+    try:
+        info["cores_available"] = len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        info["cores_available"] = os.cpu_count()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        models = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
+                  if line.startswith("model name")]  # fmt: skip
+        info["cpu"] = models[0] if models else info["cpu"]
+    meminfo = Path("/proc/meminfo")
+    if meminfo.is_file():
+        total_kib = int(meminfo.read_text().split("MemTotal:")[1].split()[0])
+        info["memory_gib"] = round(total_kib / 2**20, 1)
+    for package in ("numpy", "torch", "onnxruntime"):
+        module = sys.modules.get(package) or __import__(package)
+        info[package] = module.__version__
+    return info

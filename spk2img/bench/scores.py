@@ -1,0 +1,47 @@
+"""Scoring a row's images: PSNR/SSIM against the ground truth (overall and per scene class),
+the largest difference from a reference's images, and the best single TFP window."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from spk2img.core.classical import tfp
+from spk2img.core.metrics import psnr, ssim
+
+from .cases import CENTER, SCENE_CLASSES, BenchSet
+
+TFP_WINDOWS = tuple(range(3, 42, 2))
+
+
+def quality(images: np.ndarray, cases: BenchSet) -> dict:
+    """Mean PSNR (dB) and SSIM of ``images (N, H, W)`` against ``cases.truth``, over all
+    windows (``psnr``, ``ssim``) and per scene class (``classes[name] = {psnr, ssim}``)."""
+    scores = [(psnr(i, t), ssim(i, t)) for i, t in zip(images, cases.truth, strict=True)]
+
+    def mean(picked: list[tuple[float, float]]) -> dict:
+        return {"psnr": float(np.mean([p for p, _ in picked])),
+                "ssim": float(np.mean([s for _, s in picked]))}  # fmt: skip
+
+    classes = {
+        name: mean([s for s, c in zip(scores, cases.classes, strict=True) if c == name])
+        for name in SCENE_CLASSES
+        if name in cases.classes
+    }
+    return {**mean(scores), "classes": classes}
+
+
+def max_abs_error(images: np.ndarray, reference: np.ndarray) -> float:
+    """Largest ``|images - reference|`` over all pixels (same shapes)."""
+    return float(np.max(np.abs(images.astype(np.float64) - reference)))
+
+
+def best_tfp_window(cases: BenchSet) -> int:
+    """The one TFP window (odd, 3..41) with the highest mean PSNR over the whole set."""
+
+    def mean_psnr(window: int) -> float:
+        return float(np.mean([
+            psnr(tfp(spikes, [CENTER], window)[0], truth)
+            for spikes, truth in zip(cases.spikes, cases.truth, strict=True)
+        ]))  # fmt: skip
+
+    return max(TFP_WINDOWS, key=mean_psnr)

@@ -1,0 +1,162 @@
+"""The service under load: frames/s and latency over HTTP against the same model in-process.
+
+The real ``spk2img serve`` runs in a subprocess on a free port of 127.0.0.1 with ``--threads T``
+(its default ``T`` workers of one onnxruntime thread each). Each request uploads one 41-frame
+window and gets its centre frame back through :class:`~spk2img.clients.Client`. The in-process
+baseline runs one :class:`~spk2img.core.onnx_backend.OnnxModel` with the same threads per call,
+called by as many concurrent callers, at most ``T`` at once — the service minus HTTP.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+from .cases import CENTER
+from .worker import thread_env
+
+START_TIMEOUT_S = 120
+PERCENTILES = (50, 90, 99)
+
+
+def free_port() -> int:
+    """A TCP port of 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@contextmanager
+def running_service(model: Path, threads: int, env: dict[str, str]) -> Iterator[str]:
+    """Run ``spk2img serve`` on ``model`` with ``threads`` threads; yield its base URL once
+    ``/readyz`` answers 200; stop it afterwards."""
+    import httpx
+
+    port = free_port()
+    cmd = [sys.executable, "-m", "spk2img", "serve", "--model", str(model),
+           "--host", "127.0.0.1", "--port", str(port), "--threads", str(threads),
+           "--log-level", "warning"]  # fmt: skip
+    url = f"http://127.0.0.1:{port}"
+    with tempfile.TemporaryFile() as log:  # a file, not a pipe: a full pipe would block it
+        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        try:
+            deadline = time.monotonic() + START_TIMEOUT_S
+            while True:
+                if process.poll() is not None:
+                    log.seek(0)
+                    raise RuntimeError(f"spk2img serve exited: {log.read().decode()[-2000:]}")
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"spk2img serve not ready after {START_TIMEOUT_S} s")
+                try:
+                    if httpx.get(url + "/readyz", timeout=5).status_code == 200:
+                        break
+                except httpx.TransportError:
+                    pass
+                time.sleep(0.2)
+            yield url
+        finally:
+            process.terminate()
+            try:
+                process.wait(10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(10)
+
+
+def drive(make_call: Callable[[], Callable[[], None]], clients: int, requests: int) -> dict:
+    """Run ``requests`` calls from ``clients`` concurrent threads (each builds its own call with
+    ``make_call`` and calls it in a loop); frames/s over the wall time and latency percentiles
+    (ms) of the single calls."""
+    latencies: list[float] = []
+    lock = threading.Lock()
+    shares = [requests // clients + (i < requests % clients) for i in range(clients)]
+    failures: list[BaseException] = []
+
+    def client(n: int) -> None:
+        try:
+            call = make_call()
+            for _ in range(n):
+                start = time.perf_counter()
+                call()
+                with lock:
+                    latencies.append(time.perf_counter() - start)
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the calling thread
+            failures.append(exc)
+
+    threads = [threading.Thread(target=client, args=(n,)) for n in shares]
+    start = time.perf_counter()
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    seconds = time.perf_counter() - start
+    if failures:
+        raise failures[0]
+    ms = 1000.0 * np.asarray(latencies)
+    return {
+        "clients": clients,
+        "requests": requests,
+        "frames_per_s": requests / seconds,
+        **{f"p{q}_ms": float(np.percentile(ms, q)) for q in PERCENTILES},
+    }
+
+
+def service_benchmark(
+    model: Path, window: np.ndarray, threads: int, levels: tuple[int, ...], requests: int
+) -> dict:
+    """Load the service and the in-process model with ``window (41, H, W) uint8`` at each number
+    of concurrent clients in ``levels``; ``overhead`` is in-process frames/s over the service's."""
+    from spk2img.core.onnx_backend import OnnxModel
+
+    batch = window[None].astype(np.float32)
+    local_model = OnnxModel(model, threads=1)  # the service's intra-op threads: T // T workers
+    local_model(batch)  # warm-up, as the service warms up before it is ready
+    running = threading.Semaphore(threads)  # the service runs at most T jobs at once
+
+    def local_call() -> Callable[[], None]:
+        def call() -> None:
+            with running:
+                local_model(batch)
+
+        return call
+
+    results = []
+    with running_service(model, threads, {**os.environ, **thread_env(threads)}) as url:
+        http_call = partial(http_caller, url, window)
+        drive(http_call, 1, 2)  # warm-up: the first requests' code paths
+        for clients in levels:
+            service = drive(http_call, clients, requests)
+            local = drive(local_call, clients, requests)
+            overhead = local["frames_per_s"] / service["frames_per_s"]
+            results.append({"clients": clients, "service": service, "in_process": local,
+                            "overhead": overhead})  # fmt: skip
+    return {"model": str(model), "threads": threads, "height": int(window.shape[1]),
+            "width": int(window.shape[2]), "levels": results}  # fmt: skip
+
+
+def http_caller(url: str, window: np.ndarray) -> Callable[[], None]:
+    """A call that uploads ``window (41, H, W)`` as a ``.dat`` body and reads its centre frame
+    back (one client per calling thread, no retries)."""
+    from spk2img.clients import Client
+    from spk2img.core.spikes import pack_frames
+
+    client = Client(url, retries=0)
+    body, (height, width) = pack_frames(window), window.shape[1:]
+
+    def call() -> None:
+        frames = list(client.reconstruct(body, height, width, centers=[CENTER]))
+        if len(frames) != 1:
+            raise RuntimeError(f"the service sent {len(frames)} frames, not 1")
+
+    return call

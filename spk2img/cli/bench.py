@@ -1,0 +1,107 @@
+"""``spk2img bench``: every method's speed, memory and error in one table and one plot
+(``docs/bench.md``, ``docs/bench.json``, ``docs/images/pareto.png``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from spk2img.core.errors import InputError
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "bench",
+        help="benchmark every method: speed, memory and error; tables and a Pareto plot",
+        description="Time TFP, TFI and each network (family members with random weights, the "
+        "shipped model, --trained checkpoints) on every backend, each in a fresh process; score "
+        "them on a fixed simulated benchmark set; load-test the HTTP service; write bench.md, "
+        "bench.json and images/pareto.png into --out-dir. Needs the training, export and serve "
+        "extras and matplotlib. Run it on an otherwise idle machine.",
+    )
+    p.add_argument("--quick", action="store_true",
+                   help="CI smoke run: 64x96 frames, 3 repeats, the tiny member only, a short "
+                   "service run (under 2 minutes on 2 cores)")  # fmt: skip
+    p.add_argument("--out-dir", type=Path, default=Path("docs"), help="default: docs")
+    p.add_argument("--threads", default="1,2", help="thread counts to time, e.g. 1,2 (default)")
+    p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 3)")
+    p.add_argument("--members",
+                   help="family members with random weights (default paper,small,tiny; "
+                   "--quick: tiny)")  # fmt: skip
+    p.add_argument("--trained", action="append", default=[], metavar="NAME=CHECKPOINT",
+                   help="also benchmark and score a trained checkpoint (repeatable)")  # fmt: skip
+    p.add_argument("--skip-service", action="store_true", help="skip the HTTP load test")
+
+
+def run(args: argparse.Namespace) -> int:
+    options = bench_options(args)
+    try:
+        from spk2img.bench.report import write_report
+        from spk2img.bench.runner import run_benchmark
+    except ImportError as exc:
+        raise InputError(f"bench needs every extra: pip install -e '.[all]' ({exc})") from exc
+
+    def log(message: str) -> None:
+        print(f"bench: {message}", file=sys.stderr, flush=True)
+
+    results = run_benchmark(options, log)
+    for path in write_report(results, args.out_dir):
+        log(f"wrote {path}")
+    return 0
+
+
+def bench_options(args: argparse.Namespace):
+    """:class:`~spk2img.bench.runner.BenchOptions` from the arguments (:class:`InputError` for
+    bad ones), with the command line that reproduces them."""
+    from spk2img.bench.runner import FULL, QUICK, BenchOptions
+    from spk2img.training.config import MEMBERS
+
+    scale = QUICK if args.quick else FULL
+    threads = _positive_ints(args.threads, "--threads")
+    repeats = scale.repeats if args.repeats is None else args.repeats
+    if repeats < 1:
+        raise InputError(f"--repeats must be >= 1, got {repeats}")
+    members = scale.members if args.members is None else tuple(args.members.split(","))
+    unknown = [m for m in members if m not in MEMBERS]
+    if unknown:
+        raise InputError(
+            f"unknown member(s) {', '.join(unknown)}: choose from {', '.join(MEMBERS)}"
+        )
+    trained = tuple(_named_checkpoint(text) for text in args.trained)
+    names = [*members, "shipped", *(name for name, _ in trained)]
+    if len(set(names)) < len(names):
+        raise InputError(
+            f"--trained names must differ from each other and from {names[: -len(trained) or None]}"
+        )
+    command = ["spk2img bench", "--quick" if args.quick else "", f"--out-dir {args.out_dir}",
+               f"--threads {','.join(map(str, threads))}", f"--repeats {repeats}",
+               f"--members {','.join(members)}", *(f"--trained {n}={p}" for n, p in trained),
+               "--skip-service" if args.skip_service else ""]  # fmt: skip
+    return BenchOptions(
+        replace(scale, repeats=repeats, members=members),
+        threads,
+        trained,
+        service=not args.skip_service,
+        command=" ".join(part for part in command if part),
+    )
+
+
+def _positive_ints(text: str, flag: str) -> tuple[int, ...]:
+    try:
+        values = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1:
+        raise InputError(f"{flag} must be comma-separated positive integers, got {text!r}")
+    return values
+
+
+def _named_checkpoint(text: str) -> tuple[str, Path]:
+    name, sep, path = text.partition("=")
+    if not (sep and name and path):
+        raise InputError(f"--trained takes NAME=CHECKPOINT, got {text!r}")
+    if not Path(path).is_file():
+        raise InputError(f"--trained {name}: no such checkpoint {path}")
+    return name, Path(path)

@@ -1,0 +1,111 @@
+"""``spk2img bench --quick``: every expected row and column is there and every number is finite
+(no test asserts a time); and the pieces the benchmark relies on."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from spk2img.bench.cases import SCENE_CLASSES, benchmark_set
+from spk2img.bench.rows import BACKENDS, NetRow, TfiRow, TfpRow, row_from_json, row_to_json
+from spk2img.bench.scores import TFP_WINDOWS, best_tfp_window, quality
+from spk2img.cli import main
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    assert main(["bench", "--quick", "--out-dir", str(out)]) == 0
+    return out, json.loads((out / "bench.json").read_text()), (out / "bench.md").read_text()
+
+
+def _finite(*values) -> bool:
+    return all(isinstance(v, int | float) and math.isfinite(v) for v in values)
+
+
+@pytest.mark.slow
+def test_quick_run_has_every_row_and_finite_numbers(quick_run):
+    out, results, _ = quick_run
+    rows = {(r["label"], r["backend"]): r for r in results["rows"]}
+    assert ("TFI", "numpy") in rows
+    assert any(label.startswith("TFP-41") for label, _ in rows)
+    assert any("best single window" in label for label, _ in rows)
+    tiny = {r["backend"]: r for r in results["rows"] if r["weights"] == "tiny"}
+    assert set(tiny) == set(BACKENDS)
+    for row in results["rows"]:
+        if row["kind"] != "net" or row["backend"] in ("torch", "onnx"):
+            assert row["error"] is None, row
+        if row["error"] is not None:
+            assert row["error"], row  # a failed variant says why
+            continue
+        assert _finite(row["peak_rss_mib"], *row["ms_per_frame"].values())
+        assert set(row["ms_per_frame"]) == {"1", "2"}
+        if row["kind"] == "net":
+            assert _finite(row["params"], row["macs"]["reference"], row["max_abs_error"])
+        if row["scored"]:
+            q = row["quality"]
+            assert _finite(q["psnr"], q["ssim"])
+            assert set(q["classes"]) == set(SCENE_CLASSES)
+        else:
+            assert "quality" not in row  # untrained: timed, never scored
+    assert tiny["torch"]["max_abs_error"] == 0
+    assert tiny["onnx"]["max_abs_error"] < 1e-3
+    assert _finite(*results["matmul_gflops"].values())
+    levels = results["service"]["levels"]
+    assert [level["clients"] for level in levels] == [1, 4]
+    for level in levels:
+        for side in ("service", "in_process"):
+            assert _finite(level[side]["frames_per_s"], level[side]["p99_ms"])
+        assert _finite(level["overhead"])
+    assert (out / "images" / "pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_quick_markdown_tables(quick_run):
+    _, results, text = quick_run
+    assert "`spk2img bench --quick" in text and "Machine:" in text
+    for column in ("params", "G MACs/frame", "ms/frame (1 thr)", "ms/frame (2 thr)",
+                   "peak RSS (MiB)", "PSNR (dB)", "SSIM", "max abs err vs torch",
+                   "GFLOP/s (1 thr)", "% of matmul (2 thr)", "service frames/s", "p99 ms",
+                   "overhead (x)", *SCENE_CLASSES):  # fmt: skip
+        assert f"| {column} |" in text or f" {column} |" in text, column
+    table = text.split("## Speed and error")[1].split("##")[0]
+    for row in results["rows"]:
+        assert f"| {row['label']} | {row['backend']} |" in table
+    assert "| untrained | untrained |" in table
+    assert "nan" not in table and "inf" not in table
+
+
+def test_rows_round_trip_through_json():
+    for row in (TfpRow(9, "best"), TfiRow(), NetRow("tiny", "onnx", "/m.onnx", trained=False)):
+        assert row_from_json(json.loads(json.dumps(row_to_json(row)))) == row
+
+
+def test_benchmark_set_is_fixed_and_scores_classical_methods():
+    cases = benchmark_set(1, 24, 32)
+    again = benchmark_set(1, 24, 32)
+    assert np.array_equal(cases.spikes, again.spikes) and cases.classes == list(SCENE_CLASSES)
+    assert cases.spikes.shape == (5, 41, 24, 32) and cases.truth.shape == (5, 24, 32)
+    assert best_tfp_window(cases) in TFP_WINDOWS
+    perfect = quality(cases.truth, cases)
+    assert perfect["psnr"] == math.inf and perfect["ssim"] == pytest.approx(1.0)
+
+
+def test_worker_peak_rss_is_its_own():
+    """``ru_maxrss`` would include the parent's resident set at the fork; VmHWM does not."""
+    ballast = np.ones(64 * 2**20, np.uint8)  # 64 MiB resident in this (parent) process
+    code = "from spk2img.bench.worker import peak_rss_mib; print(peak_rss_mib())"
+    child = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert float(child.stdout) < ballast.nbytes / 2**20 + 50 or sys.platform != "linux"
+
+
+@pytest.mark.parametrize("flags", [["--threads", "0"], ["--members", "huge"],
+                                   ["--trained", "nothing"], ["--repeats", "0"]])  # fmt: skip
+def test_bad_options_exit_2(tmp_path, flags, capsys):
+    assert main(["bench", "--quick", "--out-dir", str(tmp_path), *flags]) == 2
+    assert "error" in capsys.readouterr().err
