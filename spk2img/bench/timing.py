@@ -5,20 +5,23 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable
+from typing import TypeVar
 
 MATMUL_SIZE = 1024
+T = TypeVar("T")
 
 
-def call_seconds(call: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
-    """Wall seconds of each of ``repeats`` calls of ``call``, after ``warmup`` untimed calls."""
+def call_seconds(call: Callable[[], T], repeats: int, warmup: int = 1) -> tuple[list[float], T]:
+    """Wall seconds of each of ``repeats`` calls of ``call`` after ``warmup`` untimed calls,
+    and what the last call returned."""
     for _ in range(warmup):
         call()
     seconds = []
     for _ in range(repeats):
         start = time.perf_counter()
-        call()
+        result = call()
         seconds.append(time.perf_counter() - start)
-    return seconds
+    return seconds, result
 
 
 def median_ms(seconds: list[float]) -> float:
@@ -35,5 +38,5 @@ def matmul_gflops(threads: int, repeats: int, size: int = MATMUL_SIZE) -> float:
     generator = torch.Generator().manual_seed(0)
     a = torch.rand(size, size, generator=generator)
     b = torch.rand(size, size, generator=generator)
-    seconds = call_seconds(lambda: torch.mm(a, b), repeats, warmup=2)
+    seconds, _ = call_seconds(lambda: torch.mm(a, b), repeats, warmup=2)
     return 2 * size**3 / statistics.median(seconds) / 1e9

@@ -35,7 +35,7 @@ def build_reconstructor(
     width: int,
     plan: CenterPlan,
     predict: Predictor | None = None,
-    max_batch: int = 4,
+    max_batch: int = 1,
 ) -> StreamingReconstructor:
     """A fresh streaming reconstructor for one stream of ``height x width`` frames."""
     check_method(method)

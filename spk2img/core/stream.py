@@ -121,7 +121,7 @@ class NetStream(WindowedReconstructor):
     """The network on every due 41-frame window, batched ``max_batch`` windows at a time."""
 
     def __init__(
-        self, height: int, width: int, plan: CenterPlan, predict: Predictor, max_batch: int = 4
+        self, height: int, width: int, plan: CenterPlan, predict: Predictor, max_batch: int = 1
     ):
         if plan.window != NET_WINDOW:
             raise WindowError(f"the network needs a {NET_WINDOW}-frame window, got {plan.window}")
@@ -154,12 +154,12 @@ class TFIStream(StreamingReconstructor):
 
     def __init__(self, height: int, width: int, plan: CenterPlan):
         super().__init__(height, width, plan)
-        self._last_spike = np.full((height, width), -1, np.int64)
+        self._last_spike = np.full((height, width), -1, np.int32)
         self._pending: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # k, t_prev, t_next
 
     @property
     def pending_centres(self) -> int:
-        """Centres seen and not yet emitted; each holds two ``(H, W)`` int64 maps (16 B a pixel)."""
+        """Centres seen and not yet emitted; each holds two ``(H, W)`` int32 maps (8 B a pixel)."""
         return len(self._pending)
 
     def _on_frame(self, index: int, frame: np.ndarray) -> list[Frame]:

@@ -1,0 +1,97 @@
+"""The ``metadata_props`` an exported graph carries, and the weights' fingerprint.
+
+Keys (all values are strings, as ONNX requires):
+
+- ``name``: the model's name (``spk2img-<member>``, or the checkpoint's stem).
+- ``version``: the spk2img package version that exported it.
+- ``member`` and ``config``: the family member and its :class:`Spk2ImgNetConfig` as JSON.
+- ``window`` (41) and ``rate`` (0.6): the spike frames read and the spikes per frame at I = 1
+  (SPEC §2, §4); the output is linear intensity ``I`` in [0, 1].
+- ``training_commit`` and ``training_commit_source``: the commit the checkpoint was trained at
+  when the checkpoint stores one (``source`` = ``checkpoint``), else the exporting tree's
+  ``git rev-parse HEAD`` (``git HEAD at export``), else ``unknown``.
+- ``weights_sha256``: :func:`weights_sha256` of the network's ``state_dict``.
+- ``source``: the checkpoint's file name and training step, or ``random weights, seed N``.
+- ``graph``: ``grid_sample`` or ``deform_conv`` (how the deformable sampling is expressed);
+  ``precision``: ``fp32``, ``fp16`` or ``int8``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from spk2img import __version__
+from spk2img.core.light import SPIKE_RATE
+from spk2img.core.windows import NET_WINDOW
+from spk2img.training.checkpoint import config_to_dict
+from spk2img.training.network import Spk2ImgNet
+
+UNKNOWN = "unknown"
+
+
+def weights_sha256(state_dict: Mapping[str, torch.Tensor]) -> str:
+    """SHA-256 (hex) of a ``state_dict``, independent of how it was saved.
+
+    Entries are taken in ascending order of their keys (Python string order); each contributes
+    the key in UTF-8, a NUL byte, ``<dtype>[<d0>,<d1>,...]`` (e.g. ``float32[64,4,3,3]``,
+    numpy dtype names), a NUL byte, then the tensor's values as C-order little-endian bytes.
+    """
+    digest = hashlib.sha256()
+    for key in sorted(state_dict):
+        array = state_dict[key].detach().cpu().contiguous().numpy()
+        shape = ",".join(str(d) for d in array.shape)
+        digest.update(f"{key}\0{array.dtype.name}[{shape}]\0".encode())
+        digest.update(array.astype(array.dtype.newbyteorder("<"), copy=False).tobytes("C"))
+    return digest.hexdigest()
+
+
+def training_commit(checkpoint: Mapping | None) -> tuple[str, str]:
+    """``(commit, where it came from)``: the checkpoint's ``commit`` entry (top level or in its
+    ``train_config``), else ``git rev-parse HEAD`` of the tree this package lives in, else
+    ``unknown``."""
+    if checkpoint is not None:
+        for holder in (checkpoint, checkpoint.get("train_config") or {}):
+            if holder.get("commit"):
+                return str(holder["commit"]), "checkpoint"
+    try:
+        result = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return UNKNOWN, UNKNOWN
+    commit = result.stdout.strip()
+    return (commit, "git HEAD at export") if result.returncode == 0 and commit else (UNKNOWN, UNKNOWN)
+
+
+def model_metadata(
+    model: Spk2ImgNet, name: str, member: str, source: str, checkpoint: Mapping | None
+) -> dict[str, str]:
+    """The ``metadata_props`` of an fp32 export of ``model`` (``graph`` is set by the exporter).
+
+    ``checkpoint`` is the loaded checkpoint dict (for its commit), or None for random weights.
+    """
+    commit, commit_source = training_commit(checkpoint)
+    return {
+        "name": name,
+        "version": __version__,
+        "member": member,
+        "config": json.dumps(config_to_dict(model.config), sort_keys=True),
+        "window": str(NET_WINDOW),
+        "rate": str(SPIKE_RATE),
+        "training_commit": commit,
+        "training_commit_source": commit_source,
+        "weights_sha256": weights_sha256(model.state_dict()),
+        "source": source,
+        "precision": "fp32",
+    }
