@@ -28,8 +28,11 @@ def main() -> None:
     scene = random_scene(rng, 250, 400, "fast", "normal")
     spikes = SpikeSimulator(scene, SensorConfig.real(), rng).run(CENTER + 21)
     truth = ground_truth(scene, [CENTER])[0]
-    panels = [("ground truth", truth), ("TFP (41 frames)", tfp(spikes, [CENTER], 41)[0]),
-              ("TFI", tfi(spikes, [CENTER])[0])]
+    panels = [
+        ("ground truth", truth),
+        ("TFP (41 frames)", tfp(spikes, [CENTER], 41)[0]),
+        ("TFI", tfi(spikes, [CENTER])[0]),
+    ]
     if default_model_path().is_file():
         window = spikes[CENTER - 20 : CENTER + 21][None].astype(np.float32)
         panels.append(("Spk2ImgNet (shipped)", OnnxModel(threads=2)(window)[0]))

@@ -7,7 +7,7 @@ import numpy as np
 
 
 def encode_dat(frames: np.ndarray) -> bytes:
-    """(T, H, W) 0/1 upright -> .dat bytes: bottom row first, pixel p is bit p % 8 of byte p // 8."""
+    """(T, H, W) 0/1 upright -> .dat: bottom row first, pixel p is bit p % 8 of byte p // 8."""
     t, h, w = frames.shape
     nbytes = (h * w + 7) // 8
     out = bytearray()

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from reference import encode_dat, tfi_reference, tfp_reference
+
 from spk2img.cli import main
 from spk2img.core.classical import tfi, tfp
 from spk2img.core.stream import TFIStream, TFPStream, collect
@@ -22,10 +22,25 @@ def test_cli_agrees_with_independent_implementation(tmp_path, method):
     path = tmp_path / "in.dat"
     path.write_bytes(encode_dat(frames))  # written by the independent encoder
     out = tmp_path / "out.npz"
-    code = main([
-        "reconstruct", str(path), "--out", str(out), "--height", "13", "--width", "21",
-        "--method", method, "--window", "41", "--centers", "20,57,99", "--no-progress",
-    ])
+    code = main(
+        [
+            "reconstruct",
+            str(path),
+            "--out",
+            str(out),
+            "--height",
+            "13",
+            "--width",
+            "21",
+            "--method",
+            method,
+            "--window",
+            "41",
+            "--centers",
+            "20,57,99",
+            "--no-progress",
+        ]
+    )
     assert code == 0
     got = np.load(out)
     assert got["frames"].dtype == np.float32 and got["centers"].dtype == np.int64

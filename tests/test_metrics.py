@@ -16,7 +16,9 @@ def _ssim_direct(x, y):
             ma, mb = (win * a).sum(), (win * b).sum()
             va, vb = (win * a * a).sum() - ma**2, (win * b * b).sum() - mb**2
             cov = (win * a * b).sum() - ma * mb
-            vals.append(((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma**2 + mb**2 + c1) * (va + vb + c2)))
+            vals.append(
+                ((2 * ma * mb + c1) * (2 * cov + c2)) / ((ma**2 + mb**2 + c1) * (va + vb + c2))
+            )
     return np.mean(vals)
 
 

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
 from reference import encode_dat
+
 from spk2img.core.spikes import (
     DatStream,
     SpikeDecoder,

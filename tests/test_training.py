@@ -12,8 +12,17 @@ from spk2img.training.data import SimulatedBatches
 from spk2img.training.loss import hierarchical_l1
 from spk2img.training.train import TrainConfig, learning_rate, train
 
-TINY_RUN = dict(member="tiny", patch=16, batch_size=2, val_every=4, val_per_class=1,
-                checkpoint_every=2, log_every=1, progress=False, warmup_steps=2)
+TINY_RUN = dict(
+    member="tiny",
+    patch=16,
+    batch_size=2,
+    val_every=4,
+    val_per_class=1,
+    checkpoint_every=2,
+    log_every=1,
+    progress=False,
+    warmup_steps=2,
+)
 
 
 def _records(run_dir, kind):
@@ -76,10 +85,30 @@ def test_learning_rate_schedule():
 def test_two_process_data_parallel_keeps_replicas_identical(tmp_path):
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     cmd = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-        "--standalone", "-m", "spk2img", "train", "--member", "tiny",
-        "--run-dir", str(tmp_path), "--steps", "3", "--patch", "16", "--batch-size", "2",
-        "--val-every", "100", "--val-per-class", "1", "--no-progress",
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc_per_node",
+        "2",
+        "--standalone",
+        "-m",
+        "spk2img",
+        "train",
+        "--member",
+        "tiny",
+        "--run-dir",
+        str(tmp_path),
+        "--steps",
+        "3",
+        "--patch",
+        "16",
+        "--batch-size",
+        "2",
+        "--val-every",
+        "100",
+        "--val-per-class",
+        "1",
+        "--no-progress",
     ]
     subprocess.run(cmd, check=True, env=env, timeout=300, capture_output=True)
     (rec,) = _records(tmp_path, "replicas")

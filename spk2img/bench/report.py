@@ -165,7 +165,7 @@ def pareto_plot(results: dict, path: Path) -> None:
 
     t = str(max(results["settings"]["threads"]))
     points = sorted(
-        (row["ms_per_frame"][t], row["quality"]["psnr"], f"{row['label']} ({row['backend']})")
+        (row["ms_per_frame"][t], row["quality"]["psnr"], point_label(row))
         for row in results["rows"]
         if "quality" in row
     )
@@ -176,22 +176,28 @@ def pareto_plot(results: dict, path: Path) -> None:
             best = db
     fig, ax = plt.subplots(figsize=(8, 5), dpi=120)
     ax.scatter([p[0] for p in points], [p[1] for p in points], zorder=3)
-    if front:
+    if len(front) > 1:
         ax.step(*zip(*front, strict=True), where="post", color="tab:orange", label="Pareto front")
     for ms, db, name in points:
         ax.annotate(name, (ms, db), textcoords="offset points", xytext=(4, 4), fontsize=7)
     s = results["settings"]
     ax.set_xscale("log")
-    ax.set_xlabel(f"ms per {s['height']}x{s['width']} frame ({t} threads, log scale)")
+    ax.set_xlabel(f"ms per {s['height']}x{s['width']} frame ({t} thread(s), log scale)")
     ax.set_ylabel("PSNR (dB) on the benchmark set")
     ax.set_title("Speed against error (trained models and classical methods)")
     ax.grid(True, which="both", alpha=0.3)
-    if front:
-        ax.legend(loc="lower right")
+    ax.margins(0.2)
+    if len(front) > 1:
+        ax.legend(loc="best")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
+
+
+def point_label(row: dict) -> str:
+    """A plot label: the method, and the backend of a network."""
+    return row["label"] if row["kind"] != "net" else f"{row['label']} ({row['backend']})"
 
 
 def achieved_gflops(row: dict, threads: int) -> float:

@@ -1,10 +1,10 @@
 """The service under load: frames/s and latency over HTTP against the same model in-process.
 
 The real ``spk2img serve`` runs in a subprocess on a free port of 127.0.0.1 with ``--threads T``
-(its default ``T`` workers of one onnxruntime thread each). Each request uploads one 41-frame
+(its default: ``T`` workers of one onnxruntime thread each). Each request uploads one 41-frame
 window and gets its centre frame back through :class:`~spk2img.clients.Client`. The in-process
-baseline runs one :class:`~spk2img.core.onnx_backend.OnnxModel` with the same threads per call,
-called by as many concurrent callers, at most ``T`` at once — the service minus HTTP.
+baseline runs the same graph in one :class:`~spk2img.core.onnx_backend.OnnxModel` of one thread
+in a pool of ``T`` threads fed by as many concurrent callers — the service minus HTTP.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
@@ -122,14 +123,10 @@ def service_benchmark(
     batch = window[None].astype(np.float32)
     local_model = OnnxModel(model, threads=1)  # the service's intra-op threads: T // T workers
     local_model(batch)  # warm-up, as the service warms up before it is ready
-    running = threading.Semaphore(threads)  # the service runs at most T jobs at once
+    jobs = ThreadPoolExecutor(threads)  # like the service's pool: T jobs at once, FIFO queue
 
     def local_call() -> Callable[[], None]:
-        def call() -> None:
-            with running:
-                local_model(batch)
-
-        return call
+        return lambda: jobs.submit(local_model, batch).result()
 
     results = []
     with running_service(model, threads, {**os.environ, **thread_env(threads)}) as url:
@@ -141,6 +138,7 @@ def service_benchmark(
             overhead = local["frames_per_s"] / service["frames_per_s"]
             results.append({"clients": clients, "service": service, "in_process": local,
                             "overhead": overhead})  # fmt: skip
+    jobs.shutdown()
     return {"model": str(model), "threads": threads, "height": int(window.shape[1]),
             "width": int(window.shape[2]), "levels": results}  # fmt: skip
 

@@ -30,7 +30,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     which = p.add_mutually_exclusive_group()
     which.add_argument("--centers", help="comma-separated centre frames, e.g. 40,80,120")
     which.add_argument(
-        "--stride", type=int, help=f"every S-th centre with a full window (default {DEFAULT_STRIDE})"
+        "--stride",
+        type=int,
+        help=f"every S-th centre with a full window (default {DEFAULT_STRIDE})",
     )
     p.add_argument("--method", choices=METHODS, default="net", help="default: net")
     p.add_argument("--window", type=int, default=DEFAULT_TFP_WINDOW, help="TFP's window (odd)")
@@ -55,8 +57,10 @@ def run(args: argparse.Namespace) -> int:
     np.savez_compressed(args.out, frames=frames, centers=centers)
     if args.png_dir:
         save_pngs(args.png_dir, frames, centers)
-    print(f"wrote {len(centers)} frames of {frames.shape[1]}x{frames.shape[2]} to {args.out}",
-          file=sys.stderr)
+    print(
+        f"wrote {len(centers)} frames of {frames.shape[1]}x{frames.shape[2]} to {args.out}",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -95,7 +99,9 @@ def _reconstruct_remote(args: argparse.Namespace, stride: int | None):
     try:
         from spk2img.clients.remote import reconstruct_file_remote
     except ImportError as exc:
-        raise InputError(f"--url needs the client extra: pip install 'spk2img[client]' ({exc})") from exc
+        raise InputError(
+            f"--url needs the client extra: pip install 'spk2img[client]' ({exc})"
+        ) from exc
 
     return reconstruct_file_remote(args, stride)
 

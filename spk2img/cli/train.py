@@ -47,7 +47,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         config_cls, fields = _fields()
     except ImportError as exc:
-        raise InputError(f"training needs the train extra: pip install 'spk2img[train]' ({exc})")
+        raise InputError(
+            f"training needs the train extra: pip install 'spk2img[train]' ({exc})"
+        ) from exc
     from spk2img.training.config import MEMBERS
     from spk2img.training.train import train
 

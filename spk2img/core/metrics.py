@@ -28,9 +28,13 @@ def ssim(estimate: np.ndarray, truth: np.ndarray, data_range: float = 1.0) -> fl
     """
     estimate, truth = _pair(estimate, truth)
     if estimate.ndim == 3:
-        return float(np.mean([ssim(e, t, data_range) for e, t in zip(estimate, truth, strict=True)]))
+        return float(
+            np.mean([ssim(e, t, data_range) for e, t in zip(estimate, truth, strict=True)])
+        )
     if min(estimate.shape) < SSIM_TAPS:
-        raise ValueError(f"SSIM needs images of at least {SSIM_TAPS}x{SSIM_TAPS}, got {estimate.shape}")
+        raise ValueError(
+            f"SSIM needs images of at least {SSIM_TAPS}x{SSIM_TAPS}, got {estimate.shape}"
+        )
     c1, c2 = (_K1 * data_range) ** 2, (_K2 * data_range) ** 2
     mu_x, mu_y = _blur(estimate), _blur(truth)
     var_x = _blur(estimate * estimate) - mu_x**2

@@ -45,5 +45,7 @@ class OnnxModel:
 
     def __call__(self, windows: np.ndarray) -> np.ndarray:
         """Reconstruct ``(B, 41, H, W)`` windows into ``(B, H, W)`` linear intensity in [0, 1]."""
-        (out,) = self.session.run(None, {self.input_name: np.ascontiguousarray(windows, np.float32)})
+        (out,) = self.session.run(
+            None, {self.input_name: np.ascontiguousarray(windows, np.float32)}
+        )
         return out[:, 0]

@@ -45,7 +45,9 @@ def pack_frames(frames: np.ndarray) -> bytes:
     return np.packbits(flat, axis=1, bitorder="little").tobytes()
 
 
-def unpack_frames(data: bytes | bytearray | memoryview | np.ndarray, height: int, width: int) -> np.ndarray:
+def unpack_frames(
+    data: bytes | bytearray | memoryview | np.ndarray, height: int, width: int
+) -> np.ndarray:
     """Decode ``.dat`` bytes holding whole frames into ``(T, H, W) uint8`` 0/1, upright.
 
     Raises :class:`SpikeFormatError` for an empty buffer or one that is not a whole number of
@@ -182,7 +184,9 @@ def write_spikes(path: str | Path, frames: np.ndarray) -> None:
     elif suffix == ".npz":
         np.savez_compressed(path, spk=frames)
     else:
-        raise SpikeFormatError(f"{path}: unknown spike file type {suffix!r} (use .dat, .npy or .npz)")
+        raise SpikeFormatError(
+            f"{path}: unknown spike file type {suffix!r} (use .dat, .npy or .npz)"
+        )
 
 
 class SpikeDecoder:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -168,7 +168,9 @@ class TFIStream(StreamingReconstructor):
             t_next[fired & (t_next < 0)] = index
         self._last_spike[fired] = index
         if self.plan.wants(index):
-            self._pending.append((index, self._last_spike.copy(), np.full_like(self._last_spike, -1)))
+            self._pending.append(
+                (index, self._last_spike.copy(), np.full_like(self._last_spike, -1))
+            )
         done = []
         while self._pending:
             k, t_prev, t_next = self._pending[0]
@@ -209,7 +211,7 @@ def frame_chunks(spikes, chunk: int = 256) -> Iterator[np.ndarray]:
 
 
 def collect(frames: Iterable[Frame], height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Stack ``(centre, image)`` pairs into ``frames (N, H, W) float32`` and ``centers (N,) int64``."""
+    """Stack ``(centre, image)`` pairs into ``frames (N, H, W) float32``, ``centers (N,) int64``."""
     pairs = list(frames)
     images = np.stack([img for _, img in pairs]) if pairs else np.zeros((0, height, width))
     centers = np.asarray([k for k, _ in pairs], dtype=np.int64)

@@ -43,7 +43,9 @@ class CenterPlan:
     ``window`` (odd) is the frames a centre needs: ``k - window//2 .. k + window//2``.
     """
 
-    def __init__(self, window: int, centers: Sequence[int] | None = None, stride: int | None = None):
+    def __init__(
+        self, window: int, centers: Sequence[int] | None = None, stride: int | None = None
+    ):
         self.window = check_window(window)
         self.half = self.window // 2
         if centers is not None and stride is not None:
@@ -65,7 +67,9 @@ class CenterPlan:
                 )
 
     @classmethod
-    def parse(cls, window: int, centers: str | None = None, stride: int | None = None) -> CenterPlan:
+    def parse(
+        cls, window: int, centers: str | None = None, stride: int | None = None
+    ) -> CenterPlan:
         """Build a plan from the text forms the CLI and HTTP API take (``"40,80,120"``)."""
         return cls(window, None if centers is None else parse_centers(centers), stride)
 

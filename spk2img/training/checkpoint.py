@@ -23,7 +23,7 @@ def config_from_dict(data: dict) -> Spk2ImgNetConfig:
 
 
 def save_checkpoint(path: str | Path, **state) -> None:
-    """Write ``state`` atomically (to a temporary file, then renamed) so a kill never corrupts it."""
+    """Write ``state`` atomically (a temporary file, then renamed): a kill never corrupts it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")

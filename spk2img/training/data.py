@@ -17,12 +17,12 @@ from spk2img.core.simulator import training_sample
 
 
 def _sample(seed: int, index: int, patch: int) -> tuple[np.ndarray, np.ndarray]:
-    """Simulated sample ``index`` of stream ``seed``: ``(41, P, P) uint8`` and ``(5, P, P) float32``."""
+    """Sample ``index`` of stream ``seed``: ``(41, P, P) uint8``, ``(5, P, P) float32``."""
     return training_sample(np.random.default_rng([seed, index]), patch, patch)
 
 
 def augment(spikes: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
-    """The same random rotation by k·90° and optional horizontal flip on both ``(c, h, w)`` arrays."""
+    """The same random rotation by k·90° and optional flip on both ``(c, h, w)`` arrays."""
     k = int(rng.integers(4))
     spikes, truth = np.rot90(spikes, k, axes=(1, 2)), np.rot90(truth, k, axes=(1, 2))
     if rng.integers(2):

@@ -34,7 +34,7 @@ class TrainConfig:
     member: str = "tiny"
     """Family member to train (``spk2img models`` lists them)."""
     run_dir: str = "runs/default"
-    """Where ``last.pt``, ``best.pt`` and ``metrics.jsonl`` go; an existing ``last.pt`` is resumed."""
+    """Where ``last.pt``, ``best.pt``, ``metrics.jsonl`` go; an existing ``last.pt`` is resumed."""
     steps: int = 20_000
     """Optimiser steps in all (a resumed run continues up to this)."""
     batch_size: int = 8
