@@ -17,6 +17,7 @@ from spk2img.core.metrics import psnr, ssim
 from spk2img.core.simulator import training_sample
 
 VALIDATION_SEED = 987_654_321  # disjoint from training seeds (which are < 10**6 in practice)
+TEST_SEED = 123_456_789  # the model card's held-out test scenes, used by nothing else
 MOTIONS = ("static", "slow", "fast")
 BRIGHTNESS = ("dim", "normal", "bright")
 TFP_WINDOWS = tuple(range(3, 42, 2))
@@ -31,12 +32,18 @@ class ValidationScene:
     brightness: str
 
 
-def validation_set(per_class: int = 2, height: int = 64, width: int = 96) -> list[ValidationScene]:
-    """``per_class`` scenes for each of the 9 (motion, brightness) classes."""
+def validation_set(
+    per_class: int = 2, height: int = 64, width: int = 96, seed: int = VALIDATION_SEED
+) -> list[ValidationScene]:
+    """``per_class`` scenes for each of the 9 (motion, brightness) classes.
+
+    ``seed`` picks the set: :data:`VALIDATION_SEED` for validation during training,
+    :data:`TEST_SEED` for the held-out test set of the model card.
+    """
     scenes = []
     for i, (motion, light) in enumerate(product(MOTIONS, BRIGHTNESS)):
         for j in range(per_class):
-            rng = np.random.default_rng([VALIDATION_SEED, i, j])
+            rng = np.random.default_rng([seed, i, j])
             spikes, truth = training_sample(rng, height, width, motion=motion, brightness=light)
             scenes.append(ValidationScene(spikes, truth[KEY], motion, light))
     return scenes

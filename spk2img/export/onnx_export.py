@@ -1,0 +1,205 @@
+"""Spk2ImgNet -> one self-contained ONNX file with dynamic batch, height and width.
+
+The graph reads ``spikes`` ``(B, 41, H, W)`` float32 0/1 and writes ``image`` ``(B, 1, H, W)``,
+linear intensity clipped to [0, 1] (SPEC §2). Any ``H`` and ``W`` work: the network pads to its
+pyramid's multiple and crops back inside the graph (:func:`spk2img.training.network.
+pad_to_multiple`), with pad amounts computed from the input's shape.
+
+The network is traced once, at a small example shape, by ``torch.onnx.export(dynamo=True)``
+(tracing is shape-symbolic, so the example size does not matter; exporting the paper network at
+250x400 took 13.8 GB of RAM, at 24x32 it takes well under 1 GB).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+
+import onnx
+import torch
+from torch import nn
+
+from spk2img.core.errors import InputError
+from spk2img.core.windows import NET_WINDOW
+from spk2img.training.checkpoint import config_from_dict, load_checkpoint
+from spk2img.training.config import MEMBERS
+from spk2img.training.deform_conv import ModulatedDeformConv2d
+from spk2img.training.network import Spk2ImgNet, build_model
+
+from .deform_conv_graph import (
+    DEFORM_CONV_OPSET,
+    DEFORM_CONV_TRANSLATION,
+    deform_conv_as_custom_op,
+)
+from .metadata import model_metadata
+
+INPUT_NAME = "spikes"
+OUTPUT_NAME = "image"
+GRAPHS = {"grid_sample": 18, "deform_conv": DEFORM_CONV_OPSET}
+"""Graph kinds and their opsets: the deformable sampling as ``GridSample`` + 1x1 ``Conv``
+(opset 18), or as ``DeformConv`` (opset 19)."""
+STANDARD_DOMAINS = ("", "ai.onnx")
+
+
+class ExportError(RuntimeError):
+    """An export that produced a graph breaking the contract (checker, domains, shapes)."""
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """How to export; every field has a default that works for every member."""
+
+    graph: str = "grid_sample"
+    """``grid_sample`` (opset 18) or ``deform_conv`` (opset 19, ONNX ``DeformConv``)."""
+    example_batch: int = 1
+    """Batch of the example input the network is traced with (the graph's batch is dynamic)."""
+    example_height: int = 24
+    """Height of the example input (the graph's height is dynamic)."""
+    example_width: int = 32
+    """Width of the example input (the graph's width is dynamic)."""
+
+    def __post_init__(self) -> None:
+        if self.graph not in GRAPHS:
+            raise InputError(f"graph must be one of {', '.join(GRAPHS)}, got {self.graph!r}")
+
+    @property
+    def opset(self) -> int:
+        return GRAPHS[self.graph]
+
+
+@dataclass(frozen=True)
+class ExportSource:
+    """A network to export, in eval mode, and the ``metadata_props`` describing it."""
+
+    model: Spk2ImgNet
+    metadata: dict[str, str]
+
+
+class ImageOnly(nn.Module):
+    """The network's ``image`` output alone (the SALI estimates are for training)."""
+
+    def __init__(self, model: Spk2ImgNet) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, spikes: torch.Tensor) -> torch.Tensor:
+        """``(B, 41, H, W)`` 0/1 -> ``(B, 1, H, W)`` linear intensity in [0, 1]."""
+        return self.model(spikes)[0]
+
+
+def checkpoint_source(path: str | Path, name: str | None = None) -> ExportSource:
+    """The network stored in a training checkpoint (its config and weights)."""
+    path = Path(path)
+    try:
+        state = load_checkpoint(path)
+        model = Spk2ImgNet(config_from_dict(state["config"]))
+        model.load_state_dict(state["model"])
+    except (KeyError, RuntimeError, TypeError, ValueError, EOFError) as exc:
+        raise InputError(f"{path}: not a spk2img training checkpoint ({exc})") from exc
+    member = state.get("member") or next(
+        (n for n, c in MEMBERS.items() if c == model.config), "custom"
+    )
+    source = f"{path.name}, step {state['step']}" if "step" in state else path.name
+    metadata = model_metadata(model, name or f"spk2img-{member}", member, source, state)
+    return ExportSource(model.eval(), metadata)
+
+
+def random_source(member: str, seed: int = 0, name: str | None = None) -> ExportSource:
+    """Member ``member`` with seeded random weights, for tests.
+
+    Every layer gets PyTorch's default initialisation from ``torch.manual_seed(seed)``,
+    including the offset/mask predictors of the deformable convs (which training starts at
+    zero), so that the random network's offsets are non-zero, fractional and spatially varying
+    and the exported graph's deformable sampling is really exercised.
+    """
+    if member not in MEMBERS:
+        raise InputError(f"unknown member {member!r}; choose one of {', '.join(MEMBERS)}")
+    generator_state = torch.random.get_rng_state()
+    try:
+        torch.manual_seed(seed)
+        model = build_model(member)
+        for module in model.modules():
+            if isinstance(module, ModulatedDeformConv2d):
+                module.conv_offset_mask.reset_parameters()
+    finally:
+        torch.random.set_rng_state(generator_state)
+    source = f"random weights, seed {seed}"
+    metadata = model_metadata(model, name or f"spk2img-{member}-random", member, source, None)
+    return ExportSource(model.eval(), metadata)
+
+
+def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> onnx.ModelProto:
+    """Trace ``source.model``, add its metadata, check the graph, and write it to ``out``.
+
+    Returns the written model. Raises :class:`ExportError` if the checker fails or the graph
+    uses an operator outside the standard ONNX domain.
+    """
+    out = Path(out)
+    example = torch.zeros(
+        config.example_batch, NET_WINDOW, config.example_height, config.example_width
+    )
+    example[:, ::3] = 1.0  # some spikes; the values do not shape the trace
+    deform_conv = config.graph == "deform_conv"
+    registration_log = logging.getLogger("torch.onnx._internal.exporter._registration")
+    previous_level = registration_log.level
+    registration_log.setLevel(logging.ERROR)  # "torchvision is not installed" is expected
+    try:
+        with torch.no_grad(), deform_conv_as_custom_op() if deform_conv else nullcontext():
+            program = torch.onnx.export(
+                ImageOnly(source.model).eval(),
+                (example,),
+                dynamo=True,
+                opset_version=config.opset,
+                input_names=[INPUT_NAME],
+                output_names=[OUTPUT_NAME],
+                dynamic_shapes={INPUT_NAME: {0: "batch", 2: "height", 3: "width"}},
+                custom_translation_table=DEFORM_CONV_TRANSLATION if deform_conv else None,
+                external_data=False,
+                optimize=True,
+                verbose=False,
+            )
+    finally:
+        registration_log.setLevel(previous_level)
+    model = program.model_proto
+    metadata = {**source.metadata, "graph": config.graph, "opset": str(config.opset)}
+    onnx.helper.set_model_props(model, metadata)
+    check_graph(model)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save_model(model, out, save_as_external_data=False)
+    return model
+
+
+def operator_counts(model: onnx.ModelProto) -> Counter[tuple[str, str]]:
+    """``(domain, op_type)`` -> number of nodes, over the main graph and its local functions."""
+    nodes = list(model.graph.node) + [n for f in model.functions for n in f.node]
+    return Counter((node.domain, node.op_type) for node in nodes)
+
+
+def check_graph(model: onnx.ModelProto) -> None:
+    """Raise :class:`ExportError` unless ``model`` passes ``onnx.checker`` (full check, with
+    shape inference), uses standard-domain operators only, and has the I/O contract."""
+    try:
+        onnx.checker.check_model(model, full_check=True)
+    except onnx.checker.ValidationError as exc:
+        raise ExportError(f"the exported graph fails onnx.checker: {exc}") from exc
+    foreign = sorted({f"{d}::{op}" for d, op in operator_counts(model) if d not in STANDARD_DOMAINS})
+    if foreign:
+        raise ExportError(f"the exported graph uses non-standard operators: {', '.join(foreign)}")
+    inputs = [(i.name, _dims(i)) for i in model.graph.input]
+    outputs = [(o.name, _dims(o)) for o in model.graph.output]
+    if inputs != [(INPUT_NAME, ["batch", NET_WINDOW, "height", "width"])] or outputs != [
+        (OUTPUT_NAME, ["batch", 1, "height", "width"])
+    ]:
+        raise ExportError(f"unexpected graph I/O: inputs {inputs}, outputs {outputs}")
+
+
+def graph_kind(model: onnx.ModelProto) -> str:
+    """``deform_conv`` if the graph samples with ``DeformConv`` nodes, else ``grid_sample``."""
+    return "deform_conv" if ("", "DeformConv") in operator_counts(model) else "grid_sample"
+
+
+def _dims(value: onnx.ValueInfoProto) -> list[str | int]:
+    return [d.dim_param or d.dim_value for d in value.type.tensor_type.shape.dim]
