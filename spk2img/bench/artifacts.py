@@ -13,7 +13,9 @@ from pathlib import Path
 from .rows import BACKENDS, NetRow
 
 INIT_SEED = 0
-"""``torch.manual_seed`` of the random weights of the family members."""
+"""Seed of the family members' random weights (:func:`spk2img.export.onnx_export.random_source`)."""
+PRECISIONS = {"onnx-int8": "int8", "onnx-fp16": "fp16"}
+"""Reduced-precision backends and their :mod:`spk2img.export.quantize` precision."""
 
 
 @dataclass(frozen=True)
@@ -28,20 +30,35 @@ class Weights:
     """Whether the weights were trained (untrained ones are timed but never scored)."""
     onnx: Path | None = None
     """An existing grid_sample ONNX graph of these weights (the shipped one), else exported."""
+    random_member: str | None = None
+    """The member whose seeded random weights these are (``None``: a trained checkpoint)."""
+
+    def describe(self) -> str:
+        """One line for the report: the name and where the weights come from."""
+        if self.random_member is not None:
+            return f"{self.name} (random weights, seed {INIT_SEED}; untrained)"
+        return f"{self.name} (trained, `{self.checkpoint.name}`)"
+
+    def export_source(self):
+        """The :class:`~spk2img.export.onnx_export.ExportSource` of these weights."""
+        from spk2img.export.onnx_export import checkpoint_source, random_source
+
+        if self.random_member is not None:
+            return random_source(self.random_member, seed=INIT_SEED)
+        return checkpoint_source(self.checkpoint)
 
 
 def random_member(member: str, directory: Path) -> Weights:
-    """Family member ``member`` with seeded random weights, saved as a checkpoint."""
-    import torch
-
+    """Family member ``member`` with the exporter's seeded random weights, also saved as a
+    checkpoint for the PyTorch row (so that every backend runs the very same weights)."""
     from spk2img.training.checkpoint import config_to_dict, save_checkpoint
-    from spk2img.training.network import build_model
 
-    torch.manual_seed(INIT_SEED)
-    model = build_model(member)
-    path = directory / f"{member}-random.pt"
-    save_checkpoint(path, config=config_to_dict(model.config), model=model.state_dict())
-    return Weights(member, path, trained=False)
+    weights = Weights(member, directory / f"{member}-random.pt", False, random_member=member)
+    model = weights.export_source().model
+    save_checkpoint(
+        weights.checkpoint, config=config_to_dict(model.config), model=model.state_dict()
+    )
+    return weights
 
 
 def shipped() -> Weights | None:
@@ -56,31 +73,47 @@ def shipped() -> Weights | None:
 
 
 def net_rows(weights: Weights, directory: Path) -> tuple[list[NetRow], dict[str, str]]:
-    """A row per backend of :data:`~spk2img.bench.rows.BACKENDS` for ``weights``, exporting the
-    ONNX graphs into ``directory``; and the backends whose export failed, with the reason."""
-    rows, failed = [], {}
+    """A row per backend of :data:`~spk2img.bench.rows.BACKENDS` for ``weights``, with the
+    ONNX graphs made in ``directory``; and the backends whose graph could not be made, with why.
+
+    The fp32 graphs come from :func:`~spk2img.export.pipeline.export_verified` (export, then
+    torch parity); the int8 and fp16 ones from
+    :func:`~spk2img.export.quantize.reduce_precision` of the fp32 grid_sample graph (the
+    benchmark measures their error itself).
+    """
+    paths = {"torch": weights.checkpoint}
+    failed = {}
     for backend in BACKENDS:
-        path = weights.checkpoint
-        if backend == "onnx" and weights.onnx is not None:
-            path = weights.onnx
-        elif backend != "torch":
-            path = directory / f"{weights.name}-{backend}.onnx"
-            try:
-                export_backend(weights.checkpoint, backend, path)
-            except Exception as exc:  # noqa: BLE001 - the row reports the failure
-                failed[backend] = f"{type(exc).__name__}: {exc}"
-                continue
-        rows.append(NetRow(weights.name, backend, str(path), weights.trained))
+        if backend == "torch":
+            continue
+        path = directory / f"{weights.name}-{backend}.onnx"
+        try:
+            if backend == "onnx" and weights.onnx is not None:
+                path = weights.onnx
+            else:
+                make_graph(weights, backend, path, paths.get("onnx"))
+        except Exception as exc:  # noqa: BLE001 - the row reports the failure
+            failed[backend] = f"{type(exc).__name__}: {exc}"
+            continue
+        paths[backend] = path
+    rows = [NetRow(weights.name, b, str(path), weights.trained) for b, path in paths.items()]
     return rows, failed
 
 
-def export_backend(checkpoint: Path, backend: str, path: Path) -> None:
-    """Export ``checkpoint`` as the ONNX graph ``backend`` runs (with :mod:`spk2img.export`)."""
-    from spk2img.export import export
+def make_graph(weights: Weights, backend: str, path: Path, fp32_graph: Path | None) -> None:
+    """Write the ONNX graph ``backend`` runs to ``path``; ``fp32_graph`` is the grid_sample
+    graph that reduced-precision variants start from."""
+    from spk2img.export.onnx_export import ExportConfig
+    from spk2img.export.pipeline import export_verified
+    from spk2img.export.quantize import reduce_precision
 
-    variant = {"onnx": {}, "onnx-deform": {"deform_conv": True},
-               "onnx-int8": {"precision": "int8"}, "onnx-fp16": {"precision": "fp16"}}  # fmt: skip
-    export(checkpoint, path, **variant[backend])
+    if backend in PRECISIONS:
+        if fp32_graph is None:
+            raise RuntimeError("no fp32 grid_sample graph to start from")
+        reduce_precision(fp32_graph, path, PRECISIONS[backend])
+        return
+    graph = "deform_conv" if backend == "onnx-deform" else "grid_sample"
+    export_verified(weights.export_source(), path, ExportConfig(graph=graph))
 
 
 def cost(weights: Weights, sizes: dict[str, tuple[int, int]]) -> dict:

@@ -3,12 +3,12 @@
 Five scene classes (static, slow and fast motion at normal light, dim and bright light with slow
 motion), each filmed half by the noise-free sensor of spike-REDS and half by a real-like one
 (SPEC §2). Seeds start from :data:`BENCH_SEED`, disjoint from training's (``[seed, index]`` and
-``[seed * 1000 + rank, index]`` with small seeds) and from validation's (987,654,321).
+``[seed * 1000 + rank, index]`` with small seeds), validation's (987,654,321), the model
+card's held-out test set's (123,456,789) and the int8 calibration's (161,803).
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,13 +46,10 @@ class BenchSet:
     def __len__(self) -> int:
         return len(self.classes)
 
-    def save(self, directory: Path) -> Path:
-        """Write ``spikes.npy`` (which workers memory-map), ``truth.npy`` and ``cases.json``."""
+    def save_spikes(self, directory: Path) -> Path:
+        """Write ``spikes.npy`` into ``directory``, for workers to memory-map; the directory."""
         directory.mkdir(parents=True, exist_ok=True)
         np.save(directory / "spikes.npy", self.spikes)
-        np.save(directory / "truth.npy", self.truth)
-        meta = {"classes": self.classes, "sensors": self.sensors}
-        (directory / "cases.json").write_text(json.dumps(meta))
         return directory
 
 

@@ -1,7 +1,10 @@
 """Writing a run's results: ``bench.json`` (raw), ``bench.md`` (tables) and
 ``images/pareto.png`` (PSNR against time per frame).
 
-A result row (``results["rows"]``) has ``label``, ``kind``, ``backend``, ``weights``,
+``results`` (:func:`spk2img.bench.runner.run_benchmark`) holds ``command``, ``date``,
+``machine``, ``settings``, ``cases``, ``networks``, ``shipped_installed``, ``matmul_gflops``
+(by thread count), ``rows`` and ``service`` (``None`` when skipped, ``{"error"}`` when it
+could not run). A row has ``label``, ``kind``, ``backend``, ``weights``,
 ``scored``, ``error`` (``None`` or why it failed), ``params``, ``macs`` (``{"reference",
 "timed"}`` or ``None`` for classical methods); once measured ``ms_per_frame``, ``seconds``,
 ``load_s`` (by thread count) and ``peak_rss_mib``; ``quality`` (``psnr``, ``ssim``,
@@ -18,6 +21,8 @@ from .cases import SCENE_CLASSES
 
 MD_NAME, JSON_NAME, PLOT_NAME = "bench.md", "bench.json", "images/pareto.png"
 DASH = "—"
+MARKERS = {"torch": "o", "onnx": "s", "onnx-deform": "D", "onnx-int8": "^", "onnx-fp16": "v"}
+"""Plot marker of each network backend."""
 
 
 def write_report(results: dict, out_dir: Path) -> list[Path]:
@@ -51,6 +56,9 @@ def header(results: dict) -> str:
         f"Machine: {m['cpu']}, {m['cores_available']} cores available ({m['cores']} in all), "
         f"{m['memory_gib']} GiB RAM; {m['platform']}; Python {m['python']}, numpy {m['numpy']}, "
         f"torch {m['torch']}, onnxruntime {m['onnxruntime']}.",
+        "",
+        f"Networks: {'; '.join(results['networks']) or 'none'}"
+        + ("." if results["shipped_installed"] else "; the shipped model was not installed."),
         "",
         f"- **G MACs** are multiply-accumulates of the convolution weights per {ref} frame "
         "(GFLOPs = 2 x G MACs); classical methods need next to none.",
@@ -156,30 +164,37 @@ def service_table(results: dict) -> str:
 
 
 def pareto_plot(results: dict, path: Path) -> None:
-    """PSNR against ms/frame (log x, the most threads) of every scored row, the Pareto front
-    (no other row both faster and better) joined by a line."""
+    """PSNR against ms/frame (log x, the most threads) of every scored row: classical methods
+    labelled in place, networks by a legend (colour: weights, marker: backend); the Pareto
+    front (no other row both faster and better) as a step line."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     t = str(max(results["settings"]["threads"]))
-    points = sorted(
-        (row["ms_per_frame"][t], row["quality"]["psnr"], point_label(row))
-        for row in results["rows"]
-        if "quality" in row
-    )
+    scored = [row for row in results["rows"] if "quality" in row]
+    points = sorted((row["ms_per_frame"][t], row["quality"]["psnr"]) for row in scored)
     front, best = [], -math.inf
-    for ms, db, _ in points:
+    for ms, db in points:
         if db > best:
             front.append((ms, db))
             best = db
-    fig, ax = plt.subplots(figsize=(8, 5), dpi=120)
-    ax.scatter([p[0] for p in points], [p[1] for p in points], zorder=3)
+    fig, ax = plt.subplots(figsize=(9, 5), dpi=120)
     if len(front) > 1:
-        ax.step(*zip(*front, strict=True), where="post", color="tab:orange", label="Pareto front")
-    for ms, db, name in points:
-        ax.annotate(name, (ms, db), textcoords="offset points", xytext=(4, 4), fontsize=7)
+        ax.step(*zip(*front, strict=True), where="post", color="0.6", zorder=1,
+                label="Pareto front")  # fmt: skip
+    colours = {}
+    for row in scored:
+        x, y = row["ms_per_frame"][t], row["quality"]["psnr"]
+        if row["kind"] != "net":
+            ax.scatter(x, y, color="black", marker="x", zorder=3)
+            ax.annotate(row["label"], (x, y), textcoords="offset points", xytext=(5, 5),
+                        fontsize=8)  # fmt: skip
+            continue
+        colour = colours.setdefault(row["weights"], f"C{len(colours)}")
+        ax.scatter(x, y, color=colour, marker=MARKERS.get(row["backend"], "o"), zorder=3,
+                   label=f"{row['label']}, {row['backend']}")  # fmt: skip
     s = results["settings"]
     ax.set_xscale("log")
     ax.set_xlabel(f"ms per {s['height']}x{s['width']} frame ({t} thread(s), log scale)")
@@ -187,17 +202,12 @@ def pareto_plot(results: dict, path: Path) -> None:
     ax.set_title("Speed against error (trained models and classical methods)")
     ax.grid(True, which="both", alpha=0.3)
     ax.margins(0.2)
-    if len(front) > 1:
-        ax.legend(loc="best")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
-
-
-def point_label(row: dict) -> str:
-    """A plot label: the method, and the backend of a network."""
-    return row["label"] if row["kind"] != "net" else f"{row['label']} ({row['backend']})"
 
 
 def achieved_gflops(row: dict, threads: int) -> float:
@@ -206,10 +216,12 @@ def achieved_gflops(row: dict, threads: int) -> float:
 
 
 def gmacs(row: dict, size: str) -> str:
+    """The row's G MACs per frame of ``size`` (``reference`` or ``timed``), or a dash."""
     return DASH if row["macs"] is None else number(row["macs"][size] / 1e9)
 
 
 def unscored(row: dict) -> str:
+    """What a row without scores shows in the PSNR and SSIM columns."""
     return "untrained" if row["kind"] == "net" and not row["scored"] else DASH
 
 
@@ -223,8 +235,10 @@ def number(value: float | None) -> str:
 
 
 def table_head(columns: list[str]) -> list[str]:
+    """A markdown table's header and separator lines."""
     return [table_row(columns), table_row(["---"] * len(columns))]
 
 
 def table_row(cells: list) -> str:
+    """One markdown table line."""
     return "| " + " | ".join(str(c) for c in cells) + " |"

@@ -87,7 +87,7 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         log(f"simulating the benchmark set ({len(SCENE_CLASSES) * scale.per_class} windows of "
             f"{scale.height}x{scale.width})")  # fmt: skip
         cases = benchmark_set(scale.per_class, scale.height, scale.width)
-        cases_dir = cases.save(work / "cases")
+        cases_dir = cases.save_spikes(work / "cases")
         plan = plan_rows(options, cases, work, log)
         log("measuring the fp32 matmul rate")
         matmul = run_job({"job": "matmul", "threads": list(options.threads),
@@ -118,6 +118,8 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
                      "threads": list(options.threads), "reference_size": list(REFERENCE_SIZE)},
         "cases": {"count": len(cases), "classes": list(SCENE_CLASSES), "seed": BENCH_SEED,
                   "per_class": scale.per_class, "sensors": sorted(set(cases.sensors))},
+        "networks": [w.describe() for w in plan.weights],
+        "shipped_installed": any(w.name == "shipped" for w in plan.weights),
         "matmul_gflops": matmul,
         "rows": entries,
         "service": service,
@@ -193,13 +195,13 @@ def score(
 def load_service(
     options: BenchOptions, items: list[Row | dict], entries: list[dict], cases: BenchSet, log: Log
 ) -> dict:
-    """The service load test on the shipped model's graph — or, without one, the first ONNX
-    grid_sample graph that ran."""
+    """The service load test on the shipped model's graph — or, without one, the first trained
+    ONNX grid_sample graph that ran, else the first untrained one."""
     served = [
         item for item, entry in zip(items, entries, strict=True)
         if isinstance(item, NetRow) and item.backend == "onnx" and entry["error"] is None
     ]  # fmt: skip
-    served.sort(key=lambda row: row.weights != "shipped")
+    served.sort(key=lambda row: (row.weights != "shipped", not row.trained))
     if not served:
         return {"error": "no ONNX graph ran, so there is nothing to serve"}
     log(f"load-testing the service with {served[0].label} ({', '.join(map(str, SERVICE_LEVELS))} "
@@ -214,6 +216,7 @@ def load_service(
 
 
 def progress_text(entry: dict) -> str:
+    """One line on a measured entry: its median times, or why it failed."""
     if entry["error"]:
         return f"failed ({entry['error']})"
     return ", ".join(

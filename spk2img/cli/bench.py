@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -43,8 +44,10 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         raise InputError(f"bench needs every extra: pip install -e '.[all]' ({exc})") from exc
 
+    start = time.monotonic()
+
     def log(message: str) -> None:
-        print(f"bench: {message}", file=sys.stderr, flush=True)
+        print(f"bench [{time.monotonic() - start:5.0f} s] {message}", file=sys.stderr, flush=True)
 
     results = run_benchmark(options, log)
     for path in write_report(results, args.out_dir):
@@ -72,9 +75,7 @@ def bench_options(args: argparse.Namespace):
     trained = tuple(_named_checkpoint(text) for text in args.trained)
     names = [*members, "shipped", *(name for name, _ in trained)]
     if len(set(names)) < len(names):
-        raise InputError(
-            f"--trained names must differ from each other and from {names[: -len(trained) or None]}"
-        )
+        raise InputError("--trained names must be unique and differ from the members and 'shipped'")
     command = ["spk2img bench", "--quick" if args.quick else "", f"--out-dir {args.out_dir}",
                f"--threads {','.join(map(str, threads))}", f"--repeats {repeats}",
                f"--members {','.join(members)}", *(f"--trained {n}={p}" for n, p in trained),
