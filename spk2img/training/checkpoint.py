@@ -45,3 +45,12 @@ def load_model(path: str | Path) -> Spk2ImgNet:
     model = Spk2ImgNet(config_from_dict(state["config"]))
     model.load_state_dict(state["model"])
     return model.eval()
+
+
+RELEASE_KEYS = ("model", "config", "member", "step", "wall_s", "train_config", "val_psnr", "commit")
+
+
+def release_checkpoint(src: str | Path, dst: str | Path) -> None:
+    """Copy a training checkpoint without its optimiser state (what the repo ships)."""
+    state = load_checkpoint(src)
+    save_checkpoint(dst, **{k: state[k] for k in RELEASE_KEYS if k in state})

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import math
 import os
+import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -100,6 +101,7 @@ def train(cfg: TrainConfig) -> dict:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         start, wall = int(state["step"]), float(state["wall_s"])
+    commit = state.get("commit", "unknown") if start else git_commit()  # the code that trains
     net = DistributedDataParallel(model) if run.world > 1 else model
     data = SimulatedBatches(
         cfg.patch, cfg.batch_size, cfg.seed, run.rank, cfg.cache_size, run_dir / "cache"
@@ -122,6 +124,7 @@ def train(cfg: TrainConfig) -> dict:
             member=cfg.member,
             config=config_to_dict(model.config),
             train_config=dataclasses.asdict(cfg),
+            commit=commit,
             **extra,
         )
 
@@ -178,6 +181,21 @@ def train(cfg: TrainConfig) -> dict:
             log.write(kind="replicas", world_size=run.world, max_abs_diff=diff)
     run.close()
     return val
+
+
+def git_commit() -> str:
+    """``git rev-parse HEAD`` of the tree this package lives in, or ``unknown``."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
 
 
 def validate(model: Spk2ImgNet, scenes) -> dict:
