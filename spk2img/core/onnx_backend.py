@@ -31,6 +31,7 @@ class OnnxModel:
         if not self.path.is_file():
             raise InputError(f"no such model file: {self.path}")
         options = ort.SessionOptions()
+        options.enable_cpu_mem_arena = False  # else one large request pins its memory for good
         if threads:
             options.intra_op_num_threads = threads
             options.inter_op_num_threads = 1

@@ -50,7 +50,9 @@ def _(x, offset, mask, weight, bias, groups, padding=1, dilation=1):
     return x.new_empty(x.shape[0], weight.shape[0], offset.shape[2], offset.shape[3])
 
 
-def deform_conv_onnx(x, offset, mask, weight, bias, groups: int, padding: int = 1, dilation: int = 1):
+def deform_conv_onnx(
+    x, offset, mask, weight, bias, groups: int, padding: int = 1, dilation: int = 1
+):
     """The custom op as one ONNX ``DeformConv`` (inputs ``X, W, offset, B, mask``)."""
     return opset19.DeformConv(
         x,

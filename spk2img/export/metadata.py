@@ -11,20 +11,20 @@ Keys (all values are strings, as ONNX requires):
   when the checkpoint stores one (``source`` = ``checkpoint``), else the exporting tree's
   ``git rev-parse HEAD`` (``git HEAD at export``), else ``unknown``.
 - ``weights_sha256``: :func:`weights_sha256` of the network's ``state_dict``.
-- ``source``: the checkpoint's file name and training step, or ``random weights, seed N``.
-- ``graph``: ``grid_sample`` or ``deform_conv`` (how the deformable sampling is expressed);
-  ``precision``: ``fp32``, ``fp16`` or ``int8``.
+- ``source``: the checkpoint's file name and training step, or ``random weights, seed N``
+  (then also ``random_seed``: such a graph's weights can be rebuilt from member and seed).
+- ``graph`` (``grid_sample`` or ``deform_conv``: how the deformable sampling is expressed) and
+  ``opset``, set by the exporter; ``precision``: ``fp32``, ``fp16`` or ``int8``, and for the
+  last two ``precision_report`` (JSON: error against fp32 and ground truth, see
+  :func:`spk2img.export.quantize.precision_report`).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import subprocess
 from collections.abc import Mapping
-from pathlib import Path
 
-import numpy as np
 import torch
 
 from spk2img import __version__
@@ -32,6 +32,7 @@ from spk2img.core.light import SPIKE_RATE
 from spk2img.core.windows import NET_WINDOW
 from spk2img.training.checkpoint import config_to_dict
 from spk2img.training.network import Spk2ImgNet
+from spk2img.training.train import git_commit
 
 UNKNOWN = "unknown"
 
@@ -53,25 +54,15 @@ def weights_sha256(state_dict: Mapping[str, torch.Tensor]) -> str:
 
 
 def training_commit(checkpoint: Mapping | None) -> tuple[str, str]:
-    """``(commit, where it came from)``: the checkpoint's ``commit`` entry (top level or in its
-    ``train_config``), else ``git rev-parse HEAD`` of the tree this package lives in, else
-    ``unknown``."""
-    if checkpoint is not None:
-        for holder in (checkpoint, checkpoint.get("train_config") or {}):
-            if holder.get("commit"):
-                return str(holder["commit"]), "checkpoint"
-    try:
-        result = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return UNKNOWN, UNKNOWN
-    commit = result.stdout.strip()
-    return (commit, "git HEAD at export") if result.returncode == 0 and commit else (UNKNOWN, UNKNOWN)
+    """``(commit, where it came from)``: the checkpoint's ``commit`` entry (top level, as
+    ``spk2img train`` writes it, or in its ``train_config``), else ``git rev-parse HEAD`` of the
+    tree this package lives in, else ``unknown``."""
+    state = checkpoint or {}
+    for holder in (state, state.get("train_config") or {}):
+        if holder.get("commit") not in (None, "", UNKNOWN):
+            return str(holder["commit"]), "checkpoint"
+    commit = git_commit()
+    return (commit, "git HEAD at export") if commit != UNKNOWN else (UNKNOWN, UNKNOWN)
 
 
 def model_metadata(

@@ -1,0 +1,78 @@
+"""``spk2img verify``: torch vs onnxruntime parity of an exported graph on simulated scenes and
+hard cases (needs the export extra)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from spk2img.core.errors import InputError
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"250x400"`` -> ``(250, 400)``."""
+    try:
+        height, width = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"a size is HEIGHTxWIDTH, e.g. 250x400, got {text!r}") from None
+    if height < 1 or width < 1:
+        raise InputError(f"sizes must be positive, got {text!r}")
+    return height, width
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "verify",
+        help="check an exported ONNX model against its PyTorch network",
+        description="Run the PyTorch network and the ONNX graph on simulated scenes and hard "
+        "cases (dark, saturated, single spike, flicker, fast motion, far offsets, odd and large "
+        "sizes, 1 and 2 onnxruntime threads); print max abs/rel error, PSNR and NaN/Inf per case; "
+        "exit 1 if any case exceeds --atol or is not finite. The weights come from --checkpoint, "
+        "else MODEL.pt next to MODEL.onnx, else (random-weight exports) the metadata's seed.",
+    )
+    p.add_argument("model", type=Path, help="the exported .onnx")
+    p.add_argument("--checkpoint", type=Path, help="the checkpoint it was exported from")
+    p.add_argument("--json", type=Path, help="also write the results as JSON here")
+    p.add_argument("--quick", action="store_true", help="skip the 250x400 and 1000x1000 sizes")
+    p.add_argument(
+        "--sizes", help="comma-separated HxW scene sizes instead of the default list, e.g. 17x23"
+    )
+    p.add_argument("--atol", type=float, default=None, help="max abs error allowed (1e-4)")
+    p.add_argument("--threads", type=int, default=None, help="PyTorch threads for the reference")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        import torch
+
+        from spk2img.export import hard_cases
+        from spk2img.export.verify import ATOL, reference_model, verify_onnx
+    except ImportError as exc:
+        raise InputError(
+            f"verify needs the export extra: pip install 'spk2img[export]' ({exc})"
+        ) from exc
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    model = reference_model(args.model, args.checkpoint)
+    if args.sizes:
+        sizes = tuple(parse_size(s) for s in args.sizes.split(",") if s.strip())
+        cases = hard_cases.scene_cases() + hard_cases.content_cases() + hard_cases.size_cases(sizes)
+    else:
+        cases = hard_cases.standard_cases(quick=args.quick)
+
+    def progress(result) -> None:
+        print(
+            f"  {result.case} ({result.threads} thr): max abs {result.max_abs:.2e}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    atol = ATOL if args.atol is None else args.atol
+    report = verify_onnx(args.model, model, cases, atol, progress)
+    print(report.table())
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+    return 0 if report.passed else 1

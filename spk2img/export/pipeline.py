@@ -1,0 +1,77 @@
+"""Export followed by validation: the one function ``spk2img export``, the tests and CI call.
+
+1. Trace the network to fp32 ONNX (:func:`~spk2img.export.onnx_export.export_onnx`).
+2. Check torch/onnxruntime parity on the smoke cases (:func:`~spk2img.export.hard_cases.
+   smoke_cases`: the example size with batch 2, and 17x23) against ``atol``.
+3. For ``fp16``/``int8``, convert, and measure the variant against the fp32 graph and the
+   ground truth on the validation set (:func:`~spk2img.export.quantize.precision_report`);
+   the report is stored in the metadata as ``precision_report`` (JSON).
+
+Nothing is written to ``out`` unless every check passes.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import onnx
+
+from .hard_cases import smoke_cases
+from .onnx_export import ExportConfig, ExportError, ExportSource, export_onnx
+from .quantize import MIN_PSNR_VS_FP32, PRECISIONS, precision_report, reduce_precision
+from .verify import ATOL, CaseResult, VerifyReport, verify_onnx
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    path: Path
+    parity: VerifyReport
+    """fp32 torch/onnxruntime parity on the smoke cases."""
+    precision: dict | None
+    """:func:`~spk2img.export.quantize.precision_report` of a fp16/int8 variant, else None."""
+
+
+def export_verified(
+    source: ExportSource,
+    out: str | Path,
+    config: ExportConfig | None = None,
+    precision: str = "fp32",
+    atol: float = ATOL,
+    progress: Callable[[CaseResult], None] | None = None,
+) -> ExportResult:
+    """Export ``source`` to ``out`` at ``precision`` and validate it (see the module doc;
+    ``config`` None: the default :class:`ExportConfig`);
+    raises :class:`~spk2img.export.onnx_export.ExportError` if a check fails."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    config = config or ExportConfig()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix=".spk2img-export-", dir=out.parent) as tmp:
+        fp32_path = Path(tmp) / "fp32.onnx"
+        export_onnx(source, fp32_path, config)
+        cases = smoke_cases(config.example_height, config.example_width)
+        parity = verify_onnx(fp32_path, source.model, cases, atol, progress)
+        if not parity.passed:
+            raise ExportError(f"torch/onnxruntime parity failed:\n{parity.table()}")
+        report = None
+        final = fp32_path
+        if precision != "fp32":
+            final = Path(tmp) / f"{precision}.onnx"
+            model = reduce_precision(fp32_path, final, precision)
+            report = precision_report(fp32_path, final)
+            if report["nonfinite"] or not report["psnr_vs_fp32_db"] >= MIN_PSNR_VS_FP32:
+                raise ExportError(f"the {precision} graph is too far from fp32: {report}")
+            onnx.helper.set_model_props(
+                model,
+                {p.key: p.value for p in model.metadata_props}
+                | {"precision_report": json.dumps(report, sort_keys=True)},
+            )
+            onnx.save_model(model, final, save_as_external_data=False)
+        shutil.move(final, out)
+    return ExportResult(out, parity, report)

@@ -1,0 +1,118 @@
+"""Reduced-precision variants of an fp32 graph, and how much they cost in accuracy.
+
+- ``int8``: static QDQ quantisation (``onnxruntime.quantization.quantize_static``), uint8
+  activations and per-channel int8 weights, ranges calibrated (min/max) on simulated windows
+  from seeds disjoint from training and validation.
+- ``fp16``: weights and activations in float16 (``onnxruntime.transformers.float16``), input
+  and output kept float32.
+
+Inputs and outputs keep the fp32 contract (``spikes`` float32 -> ``image`` float32 in [0, 1]).
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import onnx
+from onnxruntime.quantization import (
+    CalibrationDataReader,
+    QuantFormat,
+    QuantType,
+    quantize_static,
+)
+from onnxruntime.transformers.float16 import convert_float_to_float16
+from onnxruntime.transformers.onnx_model import OnnxModel as TransformersOnnxModel
+
+from spk2img.core.metrics import psnr
+from spk2img.core.onnx_backend import OnnxModel
+from spk2img.core.simulator import training_sample
+from spk2img.training.validation import validation_set
+
+from .onnx_export import INPUT_NAME, check_graph, operator_counts
+
+PRECISIONS = ("fp32", "fp16", "int8")
+CALIBRATION_SEED = 161_803  # disjoint from training seeds and VALIDATION_SEED
+CALIBRATION_WINDOWS = 16
+CALIBRATION_SIZE = (64, 96)
+MIN_PSNR_VS_FP32 = 30.0
+"""A reduced-precision graph whose output is below this PSNR (dB) against the fp32 graph's on
+the validation set is refused."""
+
+
+class SimulatedWindows(CalibrationDataReader):
+    """``count`` simulated windows ``(1, 41, H, W)`` float32 of random scenes and sensors."""
+
+    def __init__(self, count: int = CALIBRATION_WINDOWS, size: tuple[int, int] = CALIBRATION_SIZE):
+        rng = np.random.default_rng(CALIBRATION_SEED)
+        windows = [training_sample(rng, *size)[0][None].astype(np.float32) for _ in range(count)]
+        self._feeds = iter({INPUT_NAME: w} for w in windows)
+
+    def get_next(self) -> dict[str, np.ndarray] | None:
+        return next(self._feeds, None)
+
+
+def reduce_precision(fp32_path: str | Path, out: str | Path, precision: str) -> onnx.ModelProto:
+    """Write the ``precision`` (``fp16`` or ``int8``) variant of the graph at ``fp32_path`` to
+    ``out``, with the fp32 graph's metadata (``precision`` updated); returns it."""
+    fp32 = onnx.load(fp32_path)
+    if precision == "fp16":
+        model = convert_float_to_float16(fp32, keep_io_types=True)
+        # the converter appends its input casts at the end and leaves some value_info types
+        # stale: sort the nodes and let the checker's shape inference redo the types
+        del model.graph.value_info[:]
+        TransformersOnnxModel(model).topological_sort()
+    elif precision == "int8":
+        with tempfile.TemporaryDirectory(prefix="spk2img-int8-") as tmp:
+            quantized = Path(tmp) / "int8.onnx"
+            quantize_static(
+                fp32_path,
+                quantized,
+                SimulatedWindows(),
+                quant_format=QuantFormat.QDQ,
+                per_channel=True,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
+            )
+            model = onnx.load(quantized)
+    else:
+        raise ValueError(f"precision must be fp16 or int8, got {precision!r}")
+    used = {domain for domain, _ in operator_counts(model)}
+    kept = [o for o in model.opset_import if o.domain in used or o.domain in ("", "ai.onnx")]
+    del model.opset_import[:]
+    model.opset_import.extend(kept)  # the quantizer declares Microsoft domains it does not use
+    metadata = {p.key: p.value for p in fp32.metadata_props} | {"precision": precision}
+    onnx.helper.set_model_props(model, metadata)
+    check_graph(model)
+    onnx.save_model(model, out, save_as_external_data=False)
+    return model
+
+
+def precision_report(fp32_path: str | Path, candidate_path: str | Path, per_class: int = 1) -> dict:
+    """The candidate graph against the fp32 graph and against ground truth on the validation
+    set (``per_class`` scenes of each motion x brightness class, 64x96).
+
+    Returns ``max_abs_vs_fp32``, ``psnr_vs_fp32_db``, ``psnr_vs_truth_db`` (mean over scenes),
+    ``fp32_psnr_vs_truth_db`` (the same for the fp32 graph), ``nonfinite`` and ``scenes``.
+    """
+    scenes = validation_set(per_class)
+    spikes = np.stack([s.spikes for s in scenes]).astype(np.float32)
+    truth = np.stack([s.truth for s in scenes])
+    reference = OnnxModel(fp32_path, threads=1)(spikes)
+    candidate = OnnxModel(candidate_path, threads=1)(spikes)
+    finite = np.isfinite(candidate)
+    return {
+        "max_abs_vs_fp32": float(np.abs(candidate - reference).max()) if finite.all() else math.inf,
+        "psnr_vs_fp32_db": psnr(candidate, reference),
+        "psnr_vs_truth_db": _mean_psnr(candidate, truth),
+        "fp32_psnr_vs_truth_db": _mean_psnr(reference, truth),
+        "nonfinite": int((~finite).sum()),
+        "scenes": len(scenes),
+    }
+
+
+def _mean_psnr(images: np.ndarray, truth: np.ndarray) -> float:
+    """Mean over scenes of each ``(H, W)`` image's PSNR against its truth (dB)."""
+    return float(np.mean([psnr(i, t) for i, t in zip(images, truth, strict=True)]))

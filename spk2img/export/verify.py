@@ -1,0 +1,216 @@
+"""Torch vs onnxruntime parity of an exported graph (the check ``export`` ends with and
+``verify`` runs in full).
+
+For each :class:`~spk2img.export.hard_cases.Case` the PyTorch network and the ONNX graph run on
+the same windows; their ``(B, H, W)`` outputs are compared by
+
+- ``max_abs``: ``max |onnx - torch|`` (linear intensity units),
+- ``max_rel``: ``max |onnx - torch| / max(|torch|, 1e-3)`` (the floor keeps black pixels from
+  dividing by zero),
+- ``psnr_db``: PSNR of the onnx output against the torch output, peak 1 (``inf``: identical),
+- ``nonfinite``: NaN or Inf values in either output.
+
+A case passes when ``max_abs <= atol`` and ``nonfinite == 0``.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+
+from spk2img.core.errors import InputError
+from spk2img.core.metrics import psnr
+from spk2img.training.network import Spk2ImgNet
+
+from .hard_cases import Case, far_offset_copy
+from .metadata import weights_sha256
+from .onnx_export import (
+    INPUT_NAME,
+    ExportConfig,
+    ExportSource,
+    checkpoint_source,
+    export_onnx,
+    graph_kind,
+    random_source,
+)
+
+ATOL = 1e-4
+"""Largest fp32 difference allowed between torch and onnxruntime (linear intensity)."""
+REL_FLOOR = 1e-3
+
+
+@dataclass(frozen=True)
+class CaseResult:
+    """One case run with one onnxruntime thread count."""
+
+    case: str
+    shape: tuple[int, ...]
+    threads: int
+    max_abs: float
+    max_rel: float
+    psnr_db: float
+    nonfinite: int
+    torch_s: float
+    onnx_s: float
+    passed: bool
+
+
+@dataclass(frozen=True)
+class VerifyReport:
+    model: str
+    atol: float
+    results: list[CaseResult]
+
+    @property
+    def passed(self) -> bool:
+        return all(r.passed for r in self.results)
+
+    def table(self) -> str:
+        """The results as a fixed-width text table."""
+        head = (
+            f"{'case':<30} {'input (B,T,H,W)':<18} {'thr':>3} {'max abs':>9} {'max rel':>9} "
+            f"{'PSNR dB':>8} {'NaN/Inf':>7} {'torch s':>8} {'onnx s':>7}  ok"
+        )
+        rows = [head, "-" * len(head)]
+        for r in self.results:
+            shape = "x".join(str(d) for d in r.shape)
+            rows.append(
+                f"{r.case:<30} {shape:<18} {r.threads:>3} {r.max_abs:>9.2e} {r.max_rel:>9.2e} "
+                f"{r.psnr_db:>8.1f} {r.nonfinite:>7} {r.torch_s:>8.2f} {r.onnx_s:>7.2f}  "
+                f"{'yes' if r.passed else 'NO'}"
+            )
+        verdict = "PASS" if self.passed else "FAIL"
+        rows.append(f"{verdict}: max abs error <= {self.atol:g} and no NaN/Inf required")
+        return "\n".join(rows)
+
+    def to_json(self) -> dict:
+        """A JSON-ready dict; an infinite PSNR (identical outputs) is written as ``null``."""
+        results = [
+            {**asdict(r), "psnr_db": r.psnr_db if math.isfinite(r.psnr_db) else None}
+            for r in self.results
+        ]
+        return {"model": self.model, "atol": self.atol, "passed": self.passed, "results": results}
+
+
+def compare_outputs(reference: np.ndarray, candidate: np.ndarray) -> dict[str, float | int]:
+    """``max_abs``, ``max_rel``, ``psnr_db`` and ``nonfinite`` of two same-shape outputs."""
+    nonfinite = int((~np.isfinite(reference)).sum() + (~np.isfinite(candidate)).sum())
+    diff = np.abs(candidate.astype(np.float64) - reference.astype(np.float64))
+    if nonfinite:
+        return {
+            "max_abs": math.inf, "max_rel": math.inf, "psnr_db": -math.inf, "nonfinite": nonfinite
+        }  # fmt: skip
+    return {
+        "max_abs": float(diff.max()),
+        "max_rel": float((diff / np.maximum(np.abs(reference), REL_FLOOR)).max()),
+        "psnr_db": psnr(candidate, reference),
+        "nonfinite": 0,
+    }
+
+
+def reference_model(onnx_path: str | Path, checkpoint: str | Path | None = None) -> Spk2ImgNet:
+    """The PyTorch network an ONNX graph was exported from, checked by its weights' SHA-256.
+
+    The weights come from ``checkpoint``, else from the checkpoint next to the graph (same
+    stem, ``.pt``), else, for a graph exported with random weights, from the member and seed in
+    its metadata. An ONNX file holds no PyTorch code, so one of these must exist.
+    """
+    onnx_path = Path(onnx_path)
+    metadata = {p.key: p.value for p in onnx.load(onnx_path).metadata_props}
+    beside = onnx_path.with_suffix(".pt")
+    if checkpoint is None and beside.is_file():
+        checkpoint = beside
+    if checkpoint is not None:
+        model = checkpoint_source(checkpoint).model
+    elif "random_seed" in metadata and "member" in metadata:
+        model = random_source(metadata["member"], int(metadata["random_seed"])).model
+    else:
+        raise InputError(
+            f"{onnx_path}: no weights to compare with; pass --checkpoint CKPT or put the "
+            f"checkpoint next to the model as {beside.name}"
+        )
+    expected = metadata.get("weights_sha256")
+    if expected and weights_sha256(model.state_dict()) != expected:
+        raise InputError(
+            f"{checkpoint}: its weights are not the ones {onnx_path.name} was exported from "
+            "(weights_sha256 differs)"
+        )
+    return model.eval()
+
+
+def verify_onnx(
+    onnx_path: str | Path,
+    model: Spk2ImgNet,
+    cases: list[Case],
+    atol: float = ATOL,
+    progress: Callable[[CaseResult], None] | None = None,
+) -> VerifyReport:
+    """Run ``model`` (the exported network, eval mode) and the graph at ``onnx_path`` on every
+    case and compare their outputs; ``progress`` is called with each result as it comes.
+
+    Cases with a ``variant`` run a modified copy of ``model`` against a graph exported from that
+    copy the same way (same graph kind) into a temporary directory.
+    """
+    onnx_path = Path(onnx_path)
+    kind = graph_kind(onnx.load(onnx_path, load_external_data=False))
+    results = []
+    with tempfile.TemporaryDirectory(prefix="spk2img-verify-") as tmp:
+        variants = {None: (model.eval(), onnx_path)}
+        for case in cases:
+            if case.variant not in variants:
+                variants[case.variant] = _export_variant(model, case.variant, kind, Path(tmp))
+            net, path = variants[case.variant]
+            start = time.perf_counter()
+            with torch.inference_mode():
+                reference = net(torch.from_numpy(case.spikes))[0][:, 0].numpy()
+            torch_s = time.perf_counter() - start
+            for threads in case.threads:
+                session = onnx_session(path, threads)
+                start = time.perf_counter()
+                output = session.run(None, {INPUT_NAME: case.spikes})[0][:, 0]
+                onnx_s = time.perf_counter() - start
+                del session
+                scores = compare_outputs(reference, output)
+                ok = scores["max_abs"] <= atol and scores["nonfinite"] == 0
+                result = CaseResult(
+                    case.name, case.spikes.shape, threads, **scores, torch_s=torch_s,
+                    onnx_s=onnx_s, passed=ok,
+                )  # fmt: skip
+                results.append(result)
+                if progress:
+                    progress(result)
+    return VerifyReport(str(onnx_path), atol, results)
+
+
+def onnx_session(path: str | Path, threads: int) -> ort.InferenceSession:
+    """A CPU session with ``threads`` intra-op threads and no memory arena.
+
+    Without the arena, memory goes back to the system after each run; with it, a session keeps
+    its largest run's memory even after it is deleted (measured: tiny at 1000x1000 holds
+    13.8 GB), so a second session at that size doubles the footprint.
+    """
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.enable_cpu_mem_arena = False
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def _export_variant(
+    model: Spk2ImgNet, variant: str, kind: str, directory: Path
+) -> tuple[Spk2ImgNet, Path]:
+    if variant != "far offsets":
+        raise ValueError(f"unknown model variant {variant!r}")
+    far = far_offset_copy(model)
+    path = directory / "far-offsets.onnx"
+    export_onnx(ExportSource(far, {"name": "far-offsets variant"}), path, ExportConfig(graph=kind))
+    return far, path

@@ -1,0 +1,198 @@
+"""ONNX export: graph contract, metadata, torch/onnxruntime parity (hard cases included), the
+DeformConv graph, reduced precision, and the CLI paths that use an export."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from spk2img import __version__
+from spk2img.cli import main
+from spk2img.core.errors import InputError
+from spk2img.core.onnx_backend import OnnxModel
+from spk2img.export import hard_cases
+from spk2img.export.metadata import weights_sha256
+from spk2img.export.onnx_export import (
+    ExportConfig,
+    check_graph,
+    checkpoint_source,
+    export_onnx,
+    operator_counts,
+    random_source,
+)
+from spk2img.export.pipeline import export_verified
+from spk2img.export.quantize import MIN_PSNR_VS_FP32, precision_report, reduce_precision
+from spk2img.export.verify import ATOL, reference_model, verify_onnx
+from spk2img.training.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
+from spk2img.training.predictor import TorchPredictor
+
+torch.set_num_threads(1)
+EXAMPLE = ExportConfig(example_height=16, example_width=16)  # traced at 1x41x16x16
+TRAIN_COMMIT = "0123456789abcdef0123456789abcdef01234567"
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    """A tiny checkpoint trained for 0 steps, with the random (non-zero) offset predictors of
+    :func:`random_source` so that the deformable sampling moves."""
+    model = random_source("tiny", seed=3).model
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    config = config_to_dict(model.config)
+    save_checkpoint(
+        path, model=model.state_dict(), config=config, member="tiny", step=0, commit=TRAIN_COMMIT
+    )
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny_export(tiny_checkpoint, tmp_path_factory):
+    """The tiny checkpoint exported (grid_sample graph) through the pipeline the CLI uses."""
+    out = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
+    result = export_verified(checkpoint_source(tiny_checkpoint), out, EXAMPLE)
+    assert result.parity.passed and result.precision is None
+    return out
+
+
+def _windows(seed: int, batch: int, height: int, width: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.concatenate([hard_cases.simulated_windows(rng, height, width) for _ in range(batch)])
+
+
+def test_graph_contract(tiny_export):
+    model = onnx.load(tiny_export)
+    check_graph(model)  # checker (full), standard domains, I/O names and dynamic dims
+    ops = operator_counts(model)
+    assert {domain for domain, _ in ops} == {""}
+    assert ops[("", "GridSample")] == 3 and ("", "DeformConv") not in ops
+    assert [(o.domain, o.version) for o in model.opset_import] == [("", 18)]
+    assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in model.graph.initializer)
+    assert sorted(p.name for p in tiny_export.parent.iterdir()) == ["tiny.onnx"]  # one file
+
+
+def test_metadata(tiny_export, tiny_checkpoint):
+    meta = OnnxModel(tiny_export, threads=1).metadata
+    state = load_checkpoint(tiny_checkpoint)
+    assert meta["name"] == "spk2img-tiny" and meta["member"] == "tiny"
+    assert meta["version"] == __version__
+    assert json.loads(meta["config"]) == state["config"]
+    assert (meta["window"], meta["rate"]) == ("41", "0.6")
+    assert meta["weights_sha256"] == weights_sha256(state["model"])
+    assert (meta["training_commit"], meta["training_commit_source"]) == (TRAIN_COMMIT, "checkpoint")
+    random_meta = random_source("tiny").metadata  # no checkpoint: the exporting tree's commit
+    assert random_meta["training_commit_source"] in ("git HEAD at export", "unknown")
+    assert (meta["graph"], meta["opset"], meta["precision"]) == ("grid_sample", "18", "fp32")
+    assert meta["source"] == "tiny.pt, step 0"
+
+
+def test_weights_sha256_is_defined_by_names_and_values():
+    state = random_source("tiny").model.state_dict()
+    reordered = dict(reversed(list(state.items())))
+    assert weights_sha256(reordered) == weights_sha256(state)
+    changed = dict(state)
+    changed["fusion.reconstruct.4.bias"] = state["fusion.reconstruct.4.bias"] + 1e-6
+    assert weights_sha256(changed) != weights_sha256(state)
+
+
+def test_verify_cli_quick_passes_on_hard_cases(tiny_export, tiny_checkpoint, tmp_path):
+    out = tmp_path / "verify.json"
+    args = ["verify", str(tiny_export), "--checkpoint", str(tiny_checkpoint), "--quick"]
+    assert main([*args, "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["passed"] and report["atol"] == ATOL
+    cases = {r["case"] for r in report["results"]}
+    for name in ("dark (all 0)", "saturated (all 1)", "single spike", "checkerboard flicker",
+                 "far offsets (1e5 px)", "scene 17x23", "scene 250x250"):  # fmt: skip
+        assert name in cases
+    assert {r["threads"] for r in report["results"]} == {1, 2}
+    for r in report["results"]:
+        assert r["nonfinite"] == 0 and r["max_abs"] <= ATOL
+
+
+def test_verify_finds_its_weights_and_refuses_others(tiny_export, tiny_checkpoint, tmp_path):
+    with pytest.raises(InputError, match="--checkpoint"):
+        reference_model(tiny_export)
+    other = random_source("tiny", seed=4).model
+    wrong = tmp_path / "wrong.pt"
+    save_checkpoint(wrong, model=other.state_dict(), config=config_to_dict(other.config), step=0)
+    with pytest.raises(InputError, match="weights_sha256"):
+        reference_model(tiny_export, wrong)
+    assert main(["verify", str(tiny_export), "--checkpoint", str(wrong)]) == 2
+    # a mismatch the verifier must catch: the graph against a different network
+    report = verify_onnx(tiny_export, other, hard_cases.size_cases(((17, 23),), threads=(1,)))
+    assert not report.passed and "FAIL" in report.table()
+
+
+def test_deform_conv_graph_matches_grid_sample_graph(tiny_export, tiny_checkpoint, tmp_path):
+    source = checkpoint_source(tiny_checkpoint)
+    model = export_onnx(source, tmp_path / "dc.onnx", ExportConfig(graph="deform_conv"))
+    ops = operator_counts(model)
+    assert ops[("", "DeformConv")] == 3 and ("", "GridSample") not in ops
+    assert {domain for domain, _ in ops} == {""}
+    assert [(o.domain, o.version) for o in model.opset_import] == [("", 19)]
+    deform, grid = OnnxModel(tmp_path / "dc.onnx", 1), OnnxModel(tiny_export, 1)
+    for windows in (hard_cases.scene_cases()[0].spikes, _windows(5, 2, 17, 23)):
+        assert np.abs(deform(windows) - grid(windows)).max() <= ATOL
+
+
+def test_paper_random_weights_export_and_verify(tmp_path):
+    source = random_source("paper", seed=0)
+    result = export_verified(source, tmp_path / "paper.onnx", EXAMPLE)
+    cases = hard_cases.size_cases(((17, 23), (24, 32)), threads=(1,))
+    report = verify_onnx(result.path, source.model, cases)
+    assert result.parity.passed and report.passed, report.table()
+    assert OnnxModel(result.path, 1).metadata["weights_sha256"] == weights_sha256(
+        source.model.state_dict()
+    )
+
+
+def test_onnx_backend_agrees_with_torch_predictor(tiny_export, tiny_checkpoint):
+    windows = _windows(6, 3, 21, 30)
+    torch_out = TorchPredictor(tiny_checkpoint, threads=1)(windows)
+    onnx_out = OnnxModel(tiny_export, threads=1)(windows)
+    assert onnx_out.shape == torch_out.shape == (3, 21, 30)
+    assert np.abs(onnx_out - torch_out).max() <= ATOL
+
+
+def test_reconstruct_cli_onnx_and_torch_backends_agree(tiny_export, tiny_checkpoint, tmp_path):
+    spikes = (np.random.default_rng(7).uniform(size=(60, 19, 26)) < 0.3).astype(np.uint8)
+    np.save(tmp_path / "x.npy", spikes)
+    common = ["reconstruct", str(tmp_path / "x.npy"), "--method", "net", "--centers", "20,30,39"]
+    common += ["--no-progress", "--threads", "1"]
+    assert main([*common, "--out", str(tmp_path / "o.npz"), "--model", str(tiny_export)]) == 0
+    torch_args = ["--backend", "torch", "--checkpoint", str(tiny_checkpoint)]
+    assert main([*common, "--out", str(tmp_path / "t.npz"), *torch_args]) == 0
+    onnx_run, torch_run = np.load(tmp_path / "o.npz"), np.load(tmp_path / "t.npz")
+    assert onnx_run["frames"].shape == (3, 19, 26)
+    assert list(onnx_run["centers"]) == list(torch_run["centers"]) == [20, 30, 39]
+    assert np.abs(onnx_run["frames"] - torch_run["frames"]).max() <= ATOL
+
+
+@pytest.mark.parametrize("precision", ["fp16", "int8"])
+def test_reduced_precision_variants_run_close_to_fp32(tiny_export, tmp_path, precision):
+    out = tmp_path / f"{precision}.onnx"
+    model = reduce_precision(tiny_export, out, precision)  # includes check_graph
+    assert {p.key: p.value for p in model.metadata_props}["precision"] == precision
+    report = precision_report(tiny_export, out)
+    assert report["nonfinite"] == 0 and report["psnr_vs_fp32_db"] >= MIN_PSNR_VS_FP32
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        "export --out m.onnx",  # neither a checkpoint nor --random-weights
+        "export --out m.onnx --random-weights",  # no member
+        "export --out m.onnx --random-weights --member huge",
+        "export c.pt --out m.onnx --member tiny",
+        "export --out m.txt --random-weights --member tiny",
+        "export --out m.onnx --random-weights --member tiny --example-size x",
+    ],
+)
+def test_export_cli_rejects_bad_arguments(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv.split()) == 2
+    assert "error" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
