@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Ship a training run's best checkpoint as the default model: strip the optimiser state, export
+# and verify the ONNX graph, write the model card and the README figure, and keep the run's
+# resumable state (last.pt + metrics log) in training_state/ so a later session can continue it.
+# Usage: scripts/ship_default_model.sh runs/tiny-v1
+set -euo pipefail
+run=${1:?usage: $0 RUN_DIR}
+models=spk2img/assets/models
+state=training_state/$(basename "$run")
+mkdir -p "$models" "$state" docs
+python -c "from spk2img.training.checkpoint import release_checkpoint as r; r('$run/best.pt', '$models/spk2img-default.pt')"
+spk2img export "$models/spk2img-default.pt" --out "$models/spk2img-default.onnx" --name spk2img-default
+spk2img verify "$models/spk2img-default.onnx" --json docs/verify_default.json | tee docs/verify_default.txt
+cp "$run/last.pt" "$run/metrics.jsonl" "$state/"
+python -m spk2img.training.model_card --checkpoint "$models/spk2img-default.pt" \
+    --onnx "$models/spk2img-default.onnx" --run-dir "$state"
+python scripts/readme_figure.py

@@ -1,0 +1,47 @@
+"""The shipped default model end to end: its ONNX graph verifies against its checkpoint, the
+README's main command runs on the shipped sample stream, and the ONNX backend, the torch
+backend and the HTTP service give the same frames."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from service_support import run_server
+from spk2img.cli import main
+from spk2img.core.onnx_backend import OnnxModel, default_model_path
+from spk2img.export.metadata import weights_sha256
+from spk2img.training.checkpoint import load_checkpoint
+from spk2img.training.predictor import DEFAULT_CHECKPOINT
+
+SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fast_motion_250x400.dat"
+CENTERS = "20,60,99"
+
+
+def test_shipped_onnx_is_the_shipped_checkpoint_and_verifies(tmp_path):
+    meta = OnnxModel(threads=1).metadata
+    assert meta["weights_sha256"] == weights_sha256(load_checkpoint(DEFAULT_CHECKPOINT)["model"])
+    assert json.loads(meta["window"]) == 41 and float(meta["rate"]) == 0.6
+    report = tmp_path / "verify.json"
+    assert main(["verify", str(default_model_path()), "--quick", "--json", str(report)]) == 0
+    assert json.loads(report.read_text())["passed"]
+
+
+def test_readme_command_and_backends_and_service_agree(tmp_path):
+    outs = {}
+    for name, extra in [("onnx", []), ("torch", ["--backend", "torch"])]:
+        outs[name] = tmp_path / f"{name}.npz"
+        args = ["reconstruct", str(SAMPLE), "--out", str(outs[name]), "--centers", CENTERS]
+        assert main([*args, "--no-progress", *extra]) == 0
+    png_dir = tmp_path / "png"
+    readme = ["reconstruct", str(SAMPLE), "--out", str(tmp_path / "r.npz"), "--png-dir"]
+    assert main([*readme, str(png_dir), "--stride", "10", "--no-progress"]) == 0
+    assert len(list(png_dir.glob("*.png"))) == len(np.load(tmp_path / "r.npz")["centers"]) == 8
+    with run_server(default_model_path(), "--threads", "2") as server:
+        outs["remote"] = tmp_path / "remote.npz"
+        args = ["reconstruct", str(SAMPLE), "--out", str(outs["remote"]), "--centers", CENTERS]
+        assert main([*args, "--url", server.url, "--no-progress"]) == 0
+    frames = {k: np.load(v)["frames"] for k, v in outs.items()}
+    assert frames["onnx"].shape == (3, 250, 400) and np.isfinite(frames["onnx"]).all()
+    np.testing.assert_allclose(frames["torch"], frames["onnx"], atol=1e-4)
+    np.testing.assert_array_equal(frames["remote"], frames["onnx"])
