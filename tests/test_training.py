@@ -83,7 +83,8 @@ def test_learning_rate_schedule():
 
 
 def test_two_process_data_parallel_keeps_replicas_identical(tmp_path):
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    # gloo over loopback: the sandbox's hostname may resolve to an address gloo cannot reach
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "GLOO_SOCKET_IFNAME": "lo"}
     cmd = [
         sys.executable,
         "-m",
@@ -110,7 +111,8 @@ def test_two_process_data_parallel_keeps_replicas_identical(tmp_path):
         "1",
         "--no-progress",
     ]
-    subprocess.run(cmd, check=True, env=env, timeout=300, capture_output=True)
+    done = subprocess.run(cmd, env=env, timeout=300, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     (rec,) = _records(tmp_path, "replicas")
     assert rec["world_size"] == 2
     assert rec["max_abs_diff"] == 0.0
