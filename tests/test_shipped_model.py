@@ -6,8 +6,8 @@ import json
 from pathlib import Path
 
 import numpy as np
-
 from service_support import run_server
+
 from spk2img.cli import main
 from spk2img.core.onnx_backend import OnnxModel, default_model_path
 from spk2img.export.metadata import weights_sha256

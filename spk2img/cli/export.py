@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+from spk2img.cli.extras import needs_extra
 from spk2img.cli.verify import parse_size
 from spk2img.core.errors import InputError
 
@@ -53,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix != ".onnx":
         raise InputError(f"--out must name a .onnx file, got {args.out}")
     height, width = parse_size(args.example_size)
-    try:
+    with needs_extra("export", "export"):
         import torch
 
         from spk2img.export.onnx_export import (
@@ -64,10 +65,6 @@ def run(args: argparse.Namespace) -> int:
             random_source,
         )
         from spk2img.export.pipeline import export_verified
-    except ImportError as exc:
-        raise InputError(
-            f"export needs the export extra: pip install 'spk2img[export]' ({exc})"
-        ) from exc
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.random_weights:

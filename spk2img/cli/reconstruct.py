@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, method_plan
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, read_spikes
@@ -81,12 +82,8 @@ def _reconstruct_local(args: argparse.Namespace, stride: int | None):
 def load_predictor(args: argparse.Namespace):
     """The model for ``--method net``: ONNX by default, torch with ``--backend torch``."""
     if args.backend == "torch":
-        try:
+        with needs_extra("train", "--backend torch"):
             from spk2img.training.predictor import TorchPredictor
-        except ImportError as exc:
-            raise InputError(
-                f"--backend torch needs the training extra: pip install 'spk2img[train]' ({exc})"
-            ) from exc
         return TorchPredictor(args.checkpoint, threads=args.threads)
     from spk2img.core.onnx_backend import OnnxModel
 
@@ -96,12 +93,8 @@ def load_predictor(args: argparse.Namespace):
 def _reconstruct_remote(args: argparse.Namespace, stride: int | None):
     if args.model or args.checkpoint or args.backend != "onnx":
         raise InputError("--url runs the service's own model: drop --model/--checkpoint/--backend")
-    try:
+    with needs_extra("client", "--url"):
         from spk2img.clients.remote import reconstruct_file_remote
-    except ImportError as exc:
-        raise InputError(
-            f"--url needs the client extra: pip install 'spk2img[client]' ({exc})"
-        ) from exc
 
     return reconstruct_file_remote(args, stride)
 

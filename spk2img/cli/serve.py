@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
 
 DEFAULT_MODEL_HINT = (
@@ -51,14 +52,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
+    with needs_extra("serve", "serving"):
         import uvicorn
 
         from spk2img.service.app import create_app
-    except ImportError as exc:
-        raise InputError(
-            f"serving needs the serve extra: pip install 'spk2img[serve]' ({exc})"
-        ) from exc
 
     settings = settings_from_args(args)
     if not settings.model_path.is_file():

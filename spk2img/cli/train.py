@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
+from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
 
 
@@ -44,12 +45,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
+    with needs_extra("train", "training"):
         config_cls, fields = _fields()
-    except ImportError as exc:
-        raise InputError(
-            f"training needs the train extra: pip install 'spk2img[train]' ({exc})"
-        ) from exc
     from spk2img.training.config import MEMBERS
     from spk2img.training.train import train
 

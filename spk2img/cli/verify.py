@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
 
 
@@ -44,15 +45,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
+    with needs_extra("export", "verify"):
         import torch
 
         from spk2img.export import hard_cases
         from spk2img.export.verify import ATOL, reference_model, verify_onnx
-    except ImportError as exc:
-        raise InputError(
-            f"verify needs the export extra: pip install 'spk2img[export]' ({exc})"
-        ) from exc
     if args.threads:
         torch.set_num_threads(args.threads)
     model = reference_model(args.model, args.checkpoint)
