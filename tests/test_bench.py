@@ -67,6 +67,34 @@ def test_quick_run_has_every_row_and_finite_numbers(quick_run):
 
 
 @pytest.mark.slow
+def test_quick_streaming_section(quick_run):
+    """Block reuse streams the shipped model with the whole-window frames and fewer encodes;
+    every quality tier is timed and scored per scene class."""
+    out, results, text = quick_run
+    streaming = json.loads((out / "bench_streaming.json").read_text())
+    assert streaming["streaming"] == results["streaming"]
+    s = results["streaming"]
+    assert s["stride"] == 7 and s["frames"] == 90 and 0 < s["mac_ratio"] < 1
+    for row in s["rows"]:
+        whole, reuse = row["whole"], row["reuse"]
+        assert (
+            whole["reconstructor"] == "NetStream" and reuse["reconstructor"] == "BlockReuseStream"
+        )
+        assert whole["outputs"] == reuse["outputs"] == (90 - 41) // 7 + 1
+        assert reuse["blocks_encoded"] < 5 * reuse["outputs"]
+        assert row["max_abs_diff"] <= 1e-5 and _finite(row["ratio"])
+    tiers = results["tiers"]["tiers"]
+    assert set(tiers) == {"best", "balanced", "fast"}
+    for entry in tiers.values():
+        assert set(entry["quality"]["classes"]) == set(SCENE_CLASSES)
+        assert all(_finite(*per_class.values()) for per_class in entry["ms"].values())
+    # fast is TFP-41 and balanced never scores below it: it is TFP-41 or the network per tile
+    assert tiers["balanced"]["quality"]["psnr"] >= tiers["fast"]["quality"]["psnr"]
+    md = (out / "bench_streaming.md").read_text()
+    assert "reuse / whole" in md and "| balanced |" in md and "bench_streaming.md" in text
+
+
+@pytest.mark.slow
 def test_quick_markdown_tables(quick_run):
     _, results, text = quick_run
     assert "`spk2img bench --quick" in text and "Machine:" in text

@@ -12,6 +12,7 @@ import torch
 
 from spk2img import __version__
 from spk2img.cli import main
+from spk2img.core.block_model import block_graph_paths
 from spk2img.core.errors import InputError
 from spk2img.core.onnx_backend import OnnxModel
 from spk2img.export import hard_cases
@@ -70,7 +71,38 @@ def test_graph_contract(tiny_export):
     assert ops[("", "GridSample")] == 3 and ("", "DeformConv") not in ops
     assert [(o.domain, o.version) for o in model.opset_import] == [("", 18)]
     assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in model.graph.initializer)
-    assert sorted(p.name for p in tiny_export.parent.iterdir()) == ["tiny.onnx"]  # one file
+    # the one-shot graph, and the block encoder and head beside it: one file each
+    files = sorted(p.name for p in tiny_export.parent.iterdir())
+    assert files == ["tiny.encoder.onnx", "tiny.head.onnx", "tiny.onnx"]
+
+
+def _io_dims(model: onnx.ModelProto) -> dict[str, list[str | int]]:
+    values = [*model.graph.input, *model.graph.output]
+    return {v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
+            for v in values}  # fmt: skip
+
+
+def test_block_graph_contract(tiny_export):
+    """The encoder's and head's I/O as docs/export.md states it, with named dims, and the same
+    weights and metadata as the one-shot graph."""
+    one_shot = {p.key: p.value for p in onnx.load(tiny_export).metadata_props}
+    parts = {part: onnx.load(path) for part, path in block_graph_paths(tiny_export).items()}
+    io = {part: _io_dims(model) for part, model in parts.items()}
+    assert io["encoder"] == {
+        "block": ["batch", 13, "height", "width"],
+        **{f"{r}_l{i}": ["batch", 12, f"h_l{i}", f"w_l{i}"] for r in ("feat", "nbr", "key")
+           for i in (1, 2)},
+    }  # fmt: skip
+    assert io["head"] == {
+        **{f"feat_l{i}": ["batch", 5, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
+        **{f"nbr_l{i}": ["batch", 4, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
+        **{f"key_l{i}": ["batch", 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
+        "image": ["batch", 1, "h_l1", "w_l1"],
+    }
+    for part, model in parts.items():
+        meta = {p.key: p.value for p in model.metadata_props}
+        assert meta == {**one_shot, "part": part}
+        assert {domain for domain, _ in operator_counts(model)} == {""}
 
 
 def test_metadata(tiny_export, tiny_checkpoint):

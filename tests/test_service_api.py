@@ -27,10 +27,12 @@ def post(service, query: str, body=BODY, headers=OCTET) -> httpx.Response:
                       timeout=30)  # fmt: skip
 
 
-def local(method: str, centers: str | None, stride: int | None, model, window: int = 41):
+def local(method: str, centers: str | None, stride: int | None, model, window: int = 41,
+          quality: str = "best"):  # fmt: skip
     """The same reconstruction with spk2img.core, in-process."""
     plan = method_plan(method, centers, stride, window)
-    recon = build_reconstructor(method, H, W, plan, model if method == "net" else None)
+    predict = model if method == "net" else None
+    recon = build_reconstructor(method, H, W, plan, predict, quality=quality)
     return collect(run_stream(recon, frame_chunks(SPIKES, 7)), H, W)
 
 
@@ -53,17 +55,20 @@ def test_health_readiness_and_models(service):
 
 
 @pytest.mark.parametrize(
-    ("method", "centers", "stride", "window"),
-    [("net", "20,45,79", None, 41), ("net", None, 6, 41), ("tfp", "5,50,94", None, 11),
-     ("tfp", None, 9, 41), ("tfi", "20,50,79", None, 41), ("tfi", None, 13, 3)],
+    ("method", "centers", "stride", "window", "quality"),
+    [("net", "20,45,79", None, 41, "best"), ("net", None, 6, 41, "best"),
+     ("net", None, 7, 41, "balanced"), ("net", "20,45", None, 41, "fast"),
+     ("tfp", "5,50,94", None, 11, "best"), ("tfp", None, 9, 41, "best"),
+     ("tfi", "20,50,79", None, 41, "best"), ("tfi", None, 13, 3, "best")],
 )  # fmt: skip
-def test_results_equal_local(service, model, method, centers, stride, window):
+def test_results_equal_local(service, model, method, centers, stride, window, quality):
     which = f"centers={centers}" if centers else f"stride={stride}"
-    response = post(service, f"height={H}&width={W}&method={method}&window={window}&{which}")
+    query = f"height={H}&width={W}&method={method}&window={window}&{which}&quality={quality}"
+    response = post(service, query)
     assert response.status_code == 200, response.text
     assert response.headers["content-type"] == MEDIA_TYPE
     frames, done = parse_frames(response.content)
-    expected, expected_centers = local(method, centers, stride, model, window)
+    expected, expected_centers = local(method, centers, stride, model, window, quality)
     assert done.frames == len(frames) == len(expected_centers) > 0
     assert [f.center for f in frames] == expected_centers.tolist()
     for frame, image in zip(frames, expected, strict=True):
@@ -95,6 +100,14 @@ BAD_REQUESTS = [
     (f"height={H}&width={W}&centers=20&stride=3", OCTET, BODY, 422, "exactly one"),
     (f"height={H}&width={W}&centers=20&method=magic", OCTET, BODY, 422, "method"),
     (f"height={H}&width={W}&centers=20&format=jpeg", OCTET, BODY, 422, "format"),
+    (f"height={H}&width={W}&centers=20&quality=superb", OCTET, BODY, 422, "quality"),
+    (
+        f"height={H}&width={W}&centers=20&method=tfp&quality=fast",
+        OCTET,
+        BODY,
+        422,
+        "quality is for method net",
+    ),  # fmt: skip
     (f"height={H}&width={W}&centers=20&method=tfp&window=4", OCTET, BODY, 422, "odd"),
     (f"height={H}&width={W}&centers=60&method=tfp&window=103", OCTET, BODY, 422, "limit of 101"),
     (f"height={H}&width={W}&centers=2a,3", OCTET, BODY, 422, "centers"),

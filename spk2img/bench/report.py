@@ -39,7 +39,10 @@ def markdown(results: dict) -> str:
     """The whole ``bench.md``."""
     parts = [header(results), speed_table(results), class_table(results),
              efficiency_table(results), service_table(results),
-             f"![PSNR against time per frame]({PLOT_NAME})\n"]  # fmt: skip
+             f"![PSNR against time per frame]({PLOT_NAME})\n",
+             "Streams — block-feature reuse against whole windows, and the quality tiers per "
+             "scene class: [bench_streaming.md](bench_streaming.md) (`spk2img bench` writes "
+             "both; `--streaming-only` refreshes that one alone).\n"]  # fmt: skip
     return "\n".join(parts)
 
 

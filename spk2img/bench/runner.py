@@ -19,6 +19,7 @@ from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
 from .rows import NetRow, Row, TfiRow, TfpRow, row_to_json
 from .scores import best_tfp_window, max_abs_error, quality
 from .service_load import service_benchmark
+from .streaming import stream_benchmark, tiers_benchmark
 from .worker import WorkerError, run_job
 
 REFERENCE_SIZE = (250, 400)
@@ -44,11 +45,14 @@ class Scale:
     """Family members benchmarked with random weights."""
     service_requests: int
     """Requests per number of concurrent clients in the service load test."""
+    stream_frames: int
+    """Frames of the stream of the streaming benchmark."""
 
 
 FULL = Scale(*REFERENCE_SIZE, per_class=4, repeats=5, members=("paper", "small", "tiny"),
-             service_requests=24)  # fmt: skip
-QUICK = Scale(64, 96, per_class=2, repeats=3, members=("tiny",), service_requests=8)
+             service_requests=24, stream_frames=1000)  # fmt: skip
+QUICK = Scale(64, 96, per_class=2, repeats=3, members=("tiny",), service_requests=8,
+              stream_frames=90)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -62,6 +66,8 @@ class BenchOptions:
     """Extra trained checkpoints ``(name, path)``, benchmarked and scored like the shipped one."""
     service: bool = True
     """Whether to load-test the HTTP service."""
+    streaming: bool = True
+    """Whether to run the streaming benchmark (block reuse)."""
     command: str = "spk2img bench"
     """The command line that reproduces this run (for the report)."""
 
@@ -110,6 +116,8 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         service = (
             load_service(options, plan.items, entries, cases, log) if options.service else None
         )
+        streaming = streaming_run(options, work, log) if options.streaming else None
+        tiers = tiers_run(options, cases, work, log) if options.streaming else None
     return {
         "command": options.command,
         "date": started.isoformat(timespec="seconds"),
@@ -123,7 +131,42 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         "matmul_gflops": matmul,
         "rows": entries,
         "service": service,
+        "streaming": streaming,
+        "tiers": tiers,
     }  # fmt: skip
+
+
+def run_streaming_only(options: BenchOptions, log: Log) -> dict:
+    """Only the streaming benchmark, with the run's command, date and machine."""
+    started = datetime.now(UTC)
+    scale = options.scale
+    with tempfile.TemporaryDirectory(prefix="spk2img-bench-") as tmp:
+        streaming = streaming_run(options, Path(tmp), log)
+        log(f"simulating the benchmark set ({len(SCENE_CLASSES) * scale.per_class} windows of "
+            f"{scale.height}x{scale.width})")  # fmt: skip
+        cases = benchmark_set(scale.per_class, scale.height, scale.width)
+        tiers = tiers_run(options, cases, Path(tmp), log)
+    return {"command": options.command, "date": started.isoformat(timespec="seconds"),
+            "machine": machine(), "streaming": streaming, "tiers": tiers}  # fmt: skip
+
+
+def tiers_run(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> dict:
+    """The quality tiers on the shipped model (``{"error"}`` when it is not installed)."""
+    shipped = artifacts.shipped()
+    if shipped is None:
+        return {"error": "the shipped model is not installed"}
+    log("timing the quality tiers on the benchmark set")
+    return tiers_benchmark(shipped.onnx, cases, options.threads, work, log)
+
+
+def streaming_run(options: BenchOptions, work: Path, log: Log) -> dict:
+    """The streaming benchmark on the shipped model (``{"error"}`` when it is not installed)."""
+    shipped = artifacts.shipped()
+    if shipped is None:
+        return {"error": "the shipped model is not installed"}
+    scale = options.scale
+    return stream_benchmark(shipped.onnx, scale.stream_frames, scale.height,
+                            scale.width, options.threads, work, log)  # fmt: skip
 
 
 def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> Plan:

@@ -8,6 +8,15 @@
   peak RSS, then save to ``PATH`` (``.npy``) its images of every window (``score``) or of the
   timed window only: ``(N, H, W) float32``.
 - ``{"job": "matmul", "threads": [1, 2], "repeats": 5}``: the fp32 matmul GFLOP/s.
+- ``{"job": "stream", "model": ONNX, "mode": "whole"|"reuse", "threads": [1], "spikes": NPY,
+  "stride": 7, "outputs": PATH}``: stream the ``(T, H, W)`` spikes through the network at every
+  ``stride``-th centre, each window whole or each block encoded once
+  (:mod:`spk2img.core.block_stream`), after one untimed warm-up call; the wall seconds, and the
+  frames saved to ``PATH``.
+- ``{"job": "tiers", "model": ONNX, "threads": [1], "cases": DIR, "outputs": DIR}``: each
+  ``quality`` tier (:mod:`spk2img.core.adaptive`) on every window of the benchmark set, after
+  one warm-up call: the seconds of each window, the share of pixels the balanced tier ran the
+  network on, and each tier's images saved to ``DIR/<tier>.npy``.
 
 The parent sets ``OMP_NUM_THREADS`` and friends; a process runs one job, so rows never share
 caches, allocator pools or a peak RSS.
@@ -75,7 +84,72 @@ def measure_matmul(spec: dict) -> dict:
     return {"gflops": rates}
 
 
-JOBS = {"row": measure_row, "matmul": measure_matmul}
+def measure_stream(spec: dict) -> dict:
+    """Seconds to stream a spike file through the network whole or with block reuse."""
+    from spk2img.core.block_model import OnnxBlockCodec
+    from spk2img.core.methods import build_reconstructor
+    from spk2img.core.onnx_backend import OnnxModel
+    from spk2img.core.stream import collect, frame_chunks, run_stream
+    from spk2img.core.windows import CenterPlan
+
+    (threads,) = spec["threads"]
+    spikes = np.load(spec["spikes"], mmap_mode="r")
+    height, width = spikes.shape[1:]
+    model = OnnxModel(spec["model"], threads)
+    codec = OnnxBlockCodec(spec["model"], threads) if spec["mode"] == "reuse" else None
+    if codec is None:
+        model(np.zeros((1, 41, height, width), np.float32))  # warm-up
+    else:
+        code = codec.encode(np.zeros((codec.block_frames, height, width), np.float32))
+        codec.head([code] * codec.num_blocks, height, width)
+    recon = build_reconstructor("net", height, width, CenterPlan(41, stride=spec["stride"]),
+                                model, codec=codec)  # fmt: skip
+    start = time.perf_counter()
+    frames, centers = collect(run_stream(recon, frame_chunks(spikes)), height, width)
+    seconds = time.perf_counter() - start
+    np.save(spec["outputs"], frames)
+    return {"seconds": seconds, "outputs": len(centers), "reconstructor": type(recon).__name__,
+            "blocks_encoded": getattr(recon, "blocks_encoded", None),
+            "peak_rss_mib": peak_rss_mib()}  # fmt: skip
+
+
+def measure_tiers(spec: dict) -> dict:
+    """Seconds and images of each quality tier on every window of the benchmark set."""
+    from spk2img.core.adaptive import balanced_image
+    from spk2img.core.onnx_backend import OnnxModel
+    from spk2img.core.stream import tfp_image
+
+    (threads,) = spec["threads"]
+    windows = load_spikes(Path(spec["cases"]))
+    model = OnnxModel(spec["model"], threads)
+    shares: list[float] = []
+
+    def balanced(window: np.ndarray) -> np.ndarray:
+        image, share = balanced_image(window, model)
+        shares.append(share)
+        return image
+
+    tiers = {
+        "best": lambda window: model(window[None].astype(np.float32))[0],
+        "balanced": balanced,
+        "fast": lambda window: tfp_image(window.sum(0, dtype=np.int32), len(window)),
+    }
+    model(np.zeros((1, *windows.shape[1:]), np.float32))  # warm-up
+    seconds: dict[str, list[float]] = {tier: [] for tier in tiers}
+    images: dict[str, list[np.ndarray]] = {tier: [] for tier in tiers}
+    for window in windows:
+        window = np.array(window)
+        for tier, reconstruct in tiers.items():
+            start = time.perf_counter()
+            images[tier].append(reconstruct(window))
+            seconds[tier].append(time.perf_counter() - start)
+    for tier, stack in images.items():
+        np.save(Path(spec["outputs"]) / f"{tier}.npy", np.stack(stack).astype(np.float32))
+    return {"seconds": seconds, "balanced_share": shares, "peak_rss_mib": peak_rss_mib()}
+
+
+JOBS = {"row": measure_row, "matmul": measure_matmul, "stream": measure_stream,
+        "tiers": measure_tiers}  # fmt: skip
 
 
 class WorkerError(RuntimeError):

@@ -34,13 +34,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--trained", action="append", default=[], metavar="NAME=CHECKPOINT",
                    help="also benchmark and score a trained checkpoint (repeatable)")  # fmt: skip
     p.add_argument("--skip-service", action="store_true", help="skip the HTTP load test")
+    sections = p.add_mutually_exclusive_group()
+    sections.add_argument("--skip-streaming", action="store_true",
+                          help="skip the streaming benchmark (block reuse)")  # fmt: skip
+    sections.add_argument("--streaming-only", action="store_true",
+                          help="run only the streaming benchmark: bench_streaming.md and .json "
+                          "(the other files are left as they are)")  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
     options = bench_options(args)
     try:
         from spk2img.bench.report import write_report
-        from spk2img.bench.runner import run_benchmark
+        from spk2img.bench.runner import run_benchmark, run_streaming_only
+        from spk2img.bench.streaming import write_streaming_report
     except ImportError as exc:
         raise InputError(f"bench needs every extra: pip install -e '.[all]' ({exc})") from exc
 
@@ -49,8 +56,17 @@ def run(args: argparse.Namespace) -> int:
     def log(message: str) -> None:
         print(f"bench [{time.monotonic() - start:5.0f} s] {message}", file=sys.stderr, flush=True)
 
-    results = run_benchmark(options, log)
-    for path in write_report(results, args.out_dir):
+    if args.streaming_only:
+        results = run_streaming_only(options, log)
+        paths = []
+    else:
+        results = run_benchmark(options, log)
+        paths = write_report(results, args.out_dir)
+    if results["streaming"] is not None and "error" not in results["streaming"]:
+        paths += write_streaming_report(results, args.out_dir)
+    elif results["streaming"] is not None:
+        log(f"streaming benchmark not run: {results['streaming']['error']}")
+    for path in paths:
         log(f"wrote {path}")
     return 0
 
@@ -79,12 +95,15 @@ def bench_options(args: argparse.Namespace):
     command = ["spk2img bench", "--quick" if args.quick else "", f"--out-dir {args.out_dir}",
                f"--threads {','.join(map(str, threads))}", f"--repeats {repeats}",
                f"--members {','.join(members)}", *(f"--trained {n}={p}" for n, p in trained),
-               "--skip-service" if args.skip_service else ""]  # fmt: skip
+               "--skip-service" if args.skip_service else "",
+               "--skip-streaming" if args.skip_streaming else "",
+               "--streaming-only" if args.streaming_only else ""]  # fmt: skip
     return BenchOptions(
         replace(scale, repeats=repeats, members=members),
         threads,
         trained,
-        service=not args.skip_service,
+        service=not args.skip_service and not args.streaming_only,
+        streaming=not args.skip_streaming,
         command=" ".join(part for part in command if part),
     )
 

@@ -37,6 +37,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--precision", choices=("fp32", "fp16", "int8"), default="fp32", help="default: fp32"
     )
+    p.add_argument(
+        "--no-block-graphs",
+        action="store_true",
+        help="do not also write OUT.encoder.onnx and OUT.head.onnx (the block encoder and the "
+        "align-and-fuse head that streams use to encode each block once; fp32 only)",
+    )
     p.add_argument("--name", help="metadata name (default spk2img-<member>)")
     p.add_argument(
         "--example-size", default="24x32", help="HxW the network is traced at (default 24x32)"
@@ -74,7 +80,9 @@ def run(args: argparse.Namespace) -> int:
     graph = "deform_conv" if args.deform_conv else "grid_sample"
     config = ExportConfig(graph=graph, example_height=height, example_width=width)
     try:
-        result = export_verified(source, args.out, config, args.precision)
+        result = export_verified(
+            source, args.out, config, args.precision, block_graphs=not args.no_block_graphs
+        )
     except ExportError as exc:
         print(f"spk2img export: error: {exc}", file=sys.stderr)
         return 1
@@ -86,4 +94,10 @@ def run(args: argparse.Namespace) -> int:
     ops = operator_counts(onnx.load(result.path))
     print("operators: " + ", ".join(f"{op} x{n}" for (_, op), n in sorted(ops.items())))
     print(f"wrote {result.path} ({source.metadata['name']}, {graph}, {args.precision})")
+    if result.block_parity is not None:
+        print(
+            f"wrote {args.out.with_suffix('.encoder.onnx')} and "
+            f"{args.out.with_suffix('.head.onnx')} (streamed with block reuse: max abs "
+            f"{result.block_parity:.2e} from torch)"
+        )
     return 0

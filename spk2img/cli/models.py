@@ -22,16 +22,20 @@ def run(args: argparse.Namespace) -> int:
     check_size(args.height, args.width)
     import torch
 
-    from spk2img.training.complexity import count_macs, count_parameters
+    from spk2img.training.complexity import count_macs, count_parameters, count_stream_macs
     from spk2img.training.config import MEMBERS
     from spk2img.training.network import build_model
 
     size = f"G MACs/{args.height}x{args.width}"
-    print(f"{'member':<8} {'parameters':>12} {size:>18}")
+    print(f"{'member':<8} {'parameters':>12} {size:>18} {'block reuse':>14} {'ratio':>6}")
     for name, config in MEMBERS.items():
         with torch.device("meta"):
             params = count_parameters(build_model(config))
         macs = count_macs(config, args.height, args.width)
-        print(f"{name:<8} {params:>12,} {macs / 1e9:>18.1f}")
+        reuse = sum(count_stream_macs(config, args.height, args.width))
+        print(f"{name:<8} {params:>12,} {macs / 1e9:>18.1f} {reuse / 1e9:>14.1f} "
+              f"{reuse / macs:>6.2f}")  # fmt: skip
     print("MACs count weight multiply-accumulates of the convolutions; GFLOPs = 2 x G MACs.")
+    print("block reuse: G MACs per output of a stream with centres 7 frames apart that encodes "
+          "each 13-frame block once (one block encoded + align and fuse per output).")  # fmt: skip
     return 0

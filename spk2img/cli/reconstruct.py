@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.cli.extras import needs_extra
+from spk2img.core.adaptive import QUALITIES
 from spk2img.core.errors import InputError
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, method_plan
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, read_spikes
@@ -37,10 +38,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--method", choices=METHODS, default="net", help="default: net")
     p.add_argument("--window", type=int, default=DEFAULT_TFP_WINDOW, help="TFP's window (odd)")
+    p.add_argument(
+        "--quality",
+        choices=QUALITIES,
+        default="best",
+        help="for --method net: best (the network everywhere, default), balanced (the network "
+        "only on tiles that move or are dim, TFP elsewhere) or fast (TFP over the 41 frames)",
+    )
     p.add_argument("--model", type=Path, help="ONNX model (default: the shipped model)")
     p.add_argument("--backend", choices=("onnx", "torch"), default="onnx")
     p.add_argument("--checkpoint", type=Path, help="torch checkpoint for --backend torch")
     p.add_argument("--threads", type=int, default=None, help="inference threads")
+    p.add_argument(
+        "--no-block-reuse",
+        action="store_true",
+        help="run the network on every window whole, even when centres share 13-frame blocks "
+        "(by default, with a stride that is a multiple of 7, each block is encoded once)",
+    )
     p.add_argument("--url", help="send the work to a running service, e.g. http://127.0.0.1:8000")
     p.add_argument("--png-dir", type=Path, help="also save each frame as a PNG (gamma 1/2.2)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -48,6 +62,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     stride = args.stride if args.stride is not None or args.centers else DEFAULT_STRIDE
+    if args.quality != "best" and args.method != "net":
+        raise InputError(f"--quality is for --method net, not {args.method}")
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
     if args.url:
@@ -72,8 +88,11 @@ def _reconstruct_local(args: argparse.Namespace, stride: int | None):
     height, width = spikes.shape[1:]
     plan = method_plan(args.method, args.centers, stride, args.window)
     n_out = len(plan.centers_for(len(spikes)))
-    predict = load_predictor(args) if args.method == "net" else None
-    recon = build_reconstructor(args.method, height, width, plan, predict)
+    predict = load_predictor(args) if args.method == "net" and args.quality != "fast" else None
+    codec = None if predict is None or args.no_block_reuse else load_codec(args, predict)
+    recon = build_reconstructor(
+        args.method, height, width, plan, predict, codec=codec, quality=args.quality
+    )
     results = run_stream(recon, frame_chunks(spikes))
     bar = tqdm(results, total=n_out, unit="frame", disable=args.no_progress, file=sys.stderr)
     return collect(bar, height, width)
@@ -88,6 +107,18 @@ def load_predictor(args: argparse.Namespace):
     from spk2img.core.onnx_backend import OnnxModel
 
     return OnnxModel(args.model, threads=args.threads)
+
+
+def load_codec(args: argparse.Namespace, predict):
+    """The block encoder and head for streams that reuse blocks: the torch predictor itself, or
+    the ONNX encoder and head graphs beside the model (None when they are not there)."""
+    if args.backend == "torch":
+        return predict
+    from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths
+
+    if not all(path.is_file() for path in block_graph_paths(predict.path).values()):
+        return None
+    return OnnxBlockCodec(predict.path, threads=args.threads)
 
 
 def _reconstruct_remote(args: argparse.Namespace, stride: int | None):

@@ -13,6 +13,14 @@ DEFAULT_MODEL_HINT = (
 )
 LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
 
+
+def _parse_bool(text: str) -> bool:
+    value = text.strip().lower()
+    if value not in ("true", "false", "1", "0", "yes", "no"):
+        raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+    return value in ("true", "1", "yes")
+
+
 # one flag per field of spk2img.service.settings.ServiceSettings (a test keeps them in step);
 # absent flags leave the environment or the default, so the parser needs no pydantic import
 FLAGS = [
@@ -29,6 +37,12 @@ FLAGS = [
     ("max_tfi_pending", int, "TFI centres waiting for a pixel's next spike (default 64)"),
     ("max_request_seconds", float, "wall time of one request, upload included (default 300)"),
     ("batch", int, "41-frame windows per model call (default 1)"),
+    (
+        "block_reuse",
+        _parse_bool,
+        "encode each 13-frame block once when centres share blocks, with the encoder and head "
+        "graphs beside the model: true or false (default true)",
+    ),  # fmt: skip
     ("retry_after_seconds", int, "the Retry-After of a 503 (default 1)"),
     ("log_level", str, "uvicorn's log level (default info)"),
 ]

@@ -30,7 +30,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Run the PyTorch network and the ONNX graph on simulated scenes and hard "
         "cases (dark, saturated, single spike, flicker, fast motion, far offsets, odd and large "
         "sizes, 1 and 2 onnxruntime threads); print max abs/rel error, PSNR and NaN/Inf per case; "
-        "exit 1 if any case exceeds --atol or is not finite. The weights come from --checkpoint, "
+        "exit 1 if any case exceeds --atol or is not finite. With MODEL.encoder.onnx and "
+        "MODEL.head.onnx beside it, also stream them with block reuse at stride 7 against the "
+        "network on each window. The weights come from --checkpoint, "
         "else MODEL.pt next to MODEL.onnx, else (random-weight exports) the metadata's seed.",
     )
     p.add_argument("model", type=Path, help="the exported .onnx")
@@ -48,8 +50,16 @@ def run(args: argparse.Namespace) -> int:
     with needs_extra("export", "verify"):
         import torch
 
+        from spk2img.core.block_model import block_graph_paths
         from spk2img.export import hard_cases
-        from spk2img.export.verify import ATOL, reference_model, verify_onnx
+        from spk2img.export.hard_cases import CASE_HEIGHT, CASE_WIDTH
+        from spk2img.export.verify import (
+            ATOL,
+            VerifyReport,
+            reference_model,
+            verify_block_graphs,
+            verify_onnx,
+        )
     if args.threads:
         torch.set_num_threads(args.threads)
     model = reference_model(args.model, args.checkpoint)
@@ -68,6 +78,16 @@ def run(args: argparse.Namespace) -> int:
 
     atol = ATOL if args.atol is None else args.atol
     report = verify_onnx(args.model, model, cases, atol, progress)
+    if all(path.is_file() for path in block_graph_paths(args.model).values()):
+        sizes = [(CASE_HEIGHT, CASE_WIDTH)] + ([] if args.quick else [(250, 400)])
+        streamed = [
+            verify_block_graphs(args.model, model, hard_cases.fast_stream(h, w),
+                                f"block graphs, stream {h}x{w}", atol)
+            for h, w in sizes
+        ]  # fmt: skip
+        for result in streamed:
+            progress(result)
+        report = VerifyReport(report.model, report.atol, report.results + streamed)
     print(report.table())
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -8,7 +8,15 @@ from typing import Any, TypeVar
 
 import httpx
 
-from .base import DEFAULT_WINDOW, ClientBase, Format, Method, httpx_errors, json_or_raise
+from .base import (
+    DEFAULT_WINDOW,
+    ClientBase,
+    Format,
+    Method,
+    Quality,
+    httpx_errors,
+    json_or_raise,
+)
 from .duplex import stream_frames_async
 from .errors import ConnectionFailed, Spk2ImgError
 from .protocol import Frame
@@ -51,6 +59,7 @@ class AsyncClient(ClientBase):
         window: int = DEFAULT_WINDOW,
         format: Format = "float32",
         gamma: float | None = None,
+        quality: Quality = "best",
     ) -> AsyncIterator[Frame]:
         """:meth:`Client.reconstruct <spk2img.clients.Client.reconstruct>` as an async generator;
         ``source`` may also be an async iterable of frames. A sync iterable is drawn from in a
@@ -59,7 +68,9 @@ class AsyncClient(ClientBase):
         received = False
         attempt = 0
         while True:
-            exchange = self._exchange(upload, centers, stride, method, window, format, gamma)
+            exchange = self._exchange(
+                upload, centers, stride, method, window, format, gamma, quality
+            )
             try:
                 async for frame in stream_frames_async(
                     self.service, exchange, upload.body(), self.timeout, self.connect_timeout

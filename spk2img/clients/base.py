@@ -18,6 +18,7 @@ from .sources import Upload
 
 Method = Literal["net", "tfp", "tfi"]
 Format = Literal["float32", "uint8", "png"]
+Quality = Literal["best", "balanced", "fast"]
 DEFAULT_WINDOW = DEFAULT_TFP_WINDOW
 
 
@@ -64,9 +65,11 @@ class ClientBase:
         window: int,
         format: Format,
         gamma: float | None,
+        quality: Quality = "best",
     ) -> Exchange:
         """A fresh exchange (one per attempt) for reconstructing ``upload``."""
-        params = reconstruct_params(upload, centers, stride, method, window, format, gamma)
+        params = reconstruct_params(upload, centers, stride, method, window, format, gamma,
+                                    quality)  # fmt: skip
         return Exchange(self.service, self.service.target("/v1/reconstruct", params), upload.nbytes)
 
     def _stream_retry_delay(

@@ -75,8 +75,10 @@ def reconstruct_params(
     window: int,
     format: str,
     gamma: float | None,
+    quality: str = "best",
 ) -> dict[str, str]:
-    """The query of ``POST /v1/reconstruct`` (SPEC §7); ``centers`` as a list or ``"40,80"``."""
+    """The query of ``POST /v1/reconstruct`` (SPEC §7); ``centers`` as a list or ``"40,80"``;
+    ``quality`` is sent when it is not the default ``best``."""
     params = {
         "height": str(upload.height),
         "width": str(upload.width),
@@ -90,6 +92,8 @@ def reconstruct_params(
         params["stride"] = str(stride)
     if gamma is not None:
         params["gamma"] = str(gamma)
+    if quality != "best":
+        params["quality"] = quality
     return params
 
 

@@ -51,6 +51,7 @@ def reconstruct_file_remote(
                 stride=stride,
                 method=args.method,
                 window=args.window,
+                quality=args.quality,
             )
             bar = tqdm(
                 frames,

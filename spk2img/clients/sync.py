@@ -8,7 +8,15 @@ from typing import Any, TypeVar, cast
 
 import httpx
 
-from .base import DEFAULT_WINDOW, ClientBase, Format, Method, httpx_errors, json_or_raise
+from .base import (
+    DEFAULT_WINDOW,
+    ClientBase,
+    Format,
+    Method,
+    Quality,
+    httpx_errors,
+    json_or_raise,
+)
 from .duplex import stream_frames
 from .errors import ConnectionFailed, Spk2ImgError
 from .protocol import Frame
@@ -51,6 +59,7 @@ class Client(ClientBase):
         window: int = DEFAULT_WINDOW,
         format: Format = "float32",
         gamma: float | None = None,
+        quality: Quality = "best",
     ) -> Iterator[Frame]:
         """Upload a spike stream and yield ``(centre, image)`` for each requested centre as soon
         as the service sends it — while the upload is still going.
@@ -68,6 +77,9 @@ class Client(ClientBase):
             format: ``"float32"`` images are ``(H, W)`` linear intensity in [0, 1] (SPEC §2);
                 ``"uint8"`` and ``"png"`` are ``(H, W)`` uint8 display values.
             gamma: display gamma the service applies for ``uint8``/``png``.
+            quality: for ``net``: ``"best"`` (the network everywhere), ``"balanced"`` (the
+                network only on tiles that move or are dim, TFP elsewhere) or ``"fast"``
+                (TFP over the network's 41 frames); see :mod:`spk2img.core.adaptive`.
 
         Nothing happens until iteration starts. Connection failures and 503s are retried (see
         :class:`~spk2img.clients.retry.RetryPolicy`) until the first frame arrives, unless a
@@ -78,7 +90,9 @@ class Client(ClientBase):
         received = False
         attempt = 0
         while True:
-            exchange = self._exchange(upload, centers, stride, method, window, format, gamma)
+            exchange = self._exchange(
+                upload, centers, stride, method, window, format, gamma, quality
+            )
             body = cast(Iterator[bytes], upload.body())  # open_upload makes no async body
             try:
                 for frame in stream_frames(

@@ -6,6 +6,9 @@
 
 from __future__ import annotations
 
+from .adaptive import BalancedStream, check_quality
+from .block_model import BlockCodec
+from .block_stream import BlockReuseStream, reuses_blocks
 from .errors import InputError
 from .stream import NetStream, Predictor, StreamingReconstructor, TFIStream, TFPStream
 from .windows import NET_WINDOW, CenterPlan
@@ -36,13 +39,29 @@ def build_reconstructor(
     plan: CenterPlan,
     predict: Predictor | None = None,
     max_batch: int = 1,
+    codec: BlockCodec | None = None,
+    quality: str = "best",
 ) -> StreamingReconstructor:
-    """A fresh streaming reconstructor for one stream of ``height x width`` frames."""
+    """A fresh streaming reconstructor for one stream of ``height x width`` frames.
+
+    For ``net``, when ``codec`` is given and the plan's centres share blocks
+    (:func:`~spk2img.core.block_stream.reuses_blocks`), each block is encoded once
+    (:class:`~spk2img.core.block_stream.BlockReuseStream`); otherwise ``predict`` runs on every
+    window, ``max_batch`` windows a call. ``quality`` (``net`` only, :mod:`spk2img.core.adaptive`):
+    ``best`` as just said, ``balanced`` the network only on the tiles that move or are dim,
+    ``fast`` TFP over the network's 41 frames.
+    """
     check_method(method)
     if method == "tfp":
         return TFPStream(height, width, plan)
     if method == "tfi":
         return TFIStream(height, width, plan)
+    if check_quality(quality) == "fast":
+        return TFPStream(height, width, plan)
+    if quality == "balanced" and predict is not None:
+        return BalancedStream(height, width, plan, predict)
+    if codec is not None and reuses_blocks(plan, codec):
+        return BlockReuseStream(height, width, plan, codec)
     if predict is None:
         raise InputError("method 'net' needs a model")
     return NetStream(height, width, plan, predict, max_batch)

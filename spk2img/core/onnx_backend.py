@@ -25,22 +25,8 @@ class OnnxModel:
     """
 
     def __init__(self, path: str | Path | None = None, threads: int | None = None):
-        import onnxruntime as ort
-
         self.path = Path(path) if path is not None else default_model_path()
-        if not self.path.is_file():
-            raise InputError(f"no such model file: {self.path}")
-        options = ort.SessionOptions()
-        options.enable_cpu_mem_arena = False  # else one large request pins its memory for good
-        if threads:
-            options.intra_op_num_threads = threads
-            options.inter_op_num_threads = 1
-        try:
-            self.session = ort.InferenceSession(
-                str(self.path), options, providers=["CPUExecutionProvider"]
-            )
-        except Exception as exc:  # onnxruntime raises its own untyped errors for bad files
-            raise InputError(f"{self.path}: not a loadable ONNX model ({exc})") from exc
+        self.session = cpu_session(self.path, threads)
         self.input_name = self.session.get_inputs()[0].name
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
 
@@ -50,3 +36,21 @@ class OnnxModel:
             None, {self.input_name: np.ascontiguousarray(windows, np.float32)}
         )
         return out[:, 0]
+
+
+def cpu_session(path: Path, threads: int | None = None):
+    """An onnxruntime CPU session for ``path`` with ``threads`` intra-op threads (None:
+    onnxruntime's default); :class:`InputError` for a missing or unloadable file."""
+    import onnxruntime as ort
+
+    if not path.is_file():
+        raise InputError(f"no such model file: {path}")
+    options = ort.SessionOptions()
+    options.enable_cpu_mem_arena = False  # else one large request pins its memory for good
+    if threads:
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # onnxruntime raises its own untyped errors for bad files
+        raise InputError(f"{path}: not a loadable ONNX model ({exc})") from exc

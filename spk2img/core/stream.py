@@ -109,8 +109,14 @@ class TFPStream(WindowedReconstructor):
             self._count -= leaving
 
     def _due(self, k: int) -> list[Frame]:
-        image = self._count.astype(np.float32) / np.float32(self.window * SPIKE_RATE)
-        return [(k, np.clip(image, 0.0, 1.0))]
+        return [(k, tfp_image(self._count, self.window))]
+
+
+def tfp_image(count: np.ndarray, window: int) -> np.ndarray:
+    """TFP from ``(H, W)`` spike counts over ``window`` frames: ``count / (0.6 * window)``
+    clipped to [0, 1], float32."""
+    image = count.astype(np.float32) / np.float32(window * SPIKE_RATE)
+    return np.clip(image, 0.0, 1.0)
 
 
 Predictor = Callable[[np.ndarray], np.ndarray]

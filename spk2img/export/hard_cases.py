@@ -84,6 +84,14 @@ def simulated_windows(
     return spikes[None].astype(np.float32)
 
 
+def fast_stream(height: int, width: int, frames: int = 90) -> np.ndarray:
+    """A ``(frames, H, W)`` uint8 stream of a fast-moving scene (real-like sensor), for
+    checking the block graphs streamed with block reuse."""
+    rng = np.random.default_rng([HARD_CASE_SEED, height, width])
+    scene = random_scene(rng, height, width, "fast", "normal")
+    return simulate(scene, frames, SensorConfig.real(), rng)
+
+
 def scene_cases(per_class: int = 1) -> list[Case]:
     """The validation set's scenes (every motion x brightness class) as one batch."""
     scenes = validation_set(per_class, CASE_HEIGHT, CASE_WIDTH)

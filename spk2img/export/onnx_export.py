@@ -149,11 +149,42 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
     Returns the written model. Raises :class:`ExportError` if the checker fails or the graph
     uses an operator outside the standard ONNX domain.
     """
-    out = Path(out)
     example = torch.zeros(
         config.example_batch, NET_WINDOW, config.example_height, config.example_width
     )
     example[:, ::3] = 1.0  # some spikes; the values do not shape the trace
+    model = trace_to_onnx(
+        ImageOnly(source.model),
+        (example,),
+        GraphIO([INPUT_NAME], [OUTPUT_NAME], {INPUT_NAME: {0: "batch", 2: "height", 3: "width"}}),
+        config,
+    )
+    return finish_graph(model, source.metadata, config, out, ONE_SHOT_IO)
+
+
+@dataclass(frozen=True)
+class GraphIO:
+    """Names of a graph's inputs and outputs, and the dynamic axes of the inputs (in the form
+    ``torch.onnx.export`` takes as ``dynamic_shapes``)."""
+
+    inputs: list[str]
+    outputs: list[str]
+    dynamic_shapes: dict | tuple
+
+
+ONE_SHOT_IO = {
+    INPUT_NAME: ["batch", NET_WINDOW, "height", "width"],
+    OUTPUT_NAME: ["batch", 1, "height", "width"],
+}
+"""The one-shot graph's I/O contract: names and dims (symbolic names or sizes), in order."""
+
+
+def trace_to_onnx(
+    module: nn.Module, examples: tuple[torch.Tensor, ...], io: GraphIO, config: ExportConfig
+) -> onnx.ModelProto:
+    """Trace ``module`` (eval mode) on ``examples`` with ``torch.onnx.export(dynamo=True)`` at
+    ``config``'s graph kind and opset; the deformable convs become ``DeformConv`` nodes for the
+    ``deform_conv`` kind."""
     deform_conv = config.graph == "deform_conv"
     registration_log = logging.getLogger("torch.onnx._internal.exporter._registration")
     previous_level = registration_log.level
@@ -166,14 +197,16 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
         ):
             # raised inside torch.export by torch's own pytree code, not actionable here
             warnings.filterwarnings("ignore", ".*LeafSpec.*", FutureWarning)
+            # derived dims (the head's 2*h, 4*h) are named after their root: nothing lost
+            warnings.filterwarnings("ignore", ".*shares the same shape constraints.*")
             program = torch.onnx.export(
-                ImageOnly(source.model).eval(),
-                (example,),
+                module.eval(),
+                examples,
                 dynamo=True,
                 opset_version=config.opset,
-                input_names=[INPUT_NAME],
-                output_names=[OUTPUT_NAME],
-                dynamic_shapes={INPUT_NAME: {0: "batch", 2: "height", 3: "width"}},
+                input_names=io.inputs,
+                output_names=io.outputs,
+                dynamic_shapes=io.dynamic_shapes,
                 custom_translation_table=DEFORM_CONV_TRANSLATION if deform_conv else None,
                 external_data=False,
                 optimize=True,
@@ -181,10 +214,23 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
             )
     finally:
         registration_log.setLevel(previous_level)
-    model = program.model_proto
-    metadata = {**source.metadata, "graph": config.graph, "opset": str(config.opset)}
-    onnx.helper.set_model_props(model, metadata)
-    check_graph(model)
+    return program.model_proto
+
+
+def finish_graph(
+    model: onnx.ModelProto,
+    metadata: dict[str, str],
+    config: ExportConfig,
+    out: str | Path,
+    expected_io: dict[str, list[str | int]],
+) -> onnx.ModelProto:
+    """Add ``metadata`` (and the graph kind and opset) to ``model``, :func:`check_graph` it
+    against ``expected_io`` and write it to ``out``; returns it."""
+    out = Path(out)
+    onnx.helper.set_model_props(
+        model, {**metadata, "graph": config.graph, "opset": str(config.opset)}
+    )
+    check_graph(model, expected_io)
     out.parent.mkdir(parents=True, exist_ok=True)
     onnx.save_model(model, out, save_as_external_data=False)
     return model
@@ -196,9 +242,12 @@ def operator_counts(model: onnx.ModelProto) -> Counter[tuple[str, str]]:
     return Counter((node.domain, node.op_type) for node in nodes)
 
 
-def check_graph(model: onnx.ModelProto) -> None:
+def check_graph(
+    model: onnx.ModelProto, expected_io: dict[str, list[str | int]] | None = None
+) -> None:
     """Raise :class:`ExportError` unless ``model`` passes ``onnx.checker`` (full check, with
-    shape inference), uses standard-domain operators only, and has the I/O contract."""
+    shape inference), uses standard-domain operators only, and has the I/O contract
+    ``expected_io`` (default: the one-shot graph's, :data:`ONE_SHOT_IO`)."""
     try:
         onnx.checker.check_model(model, full_check=True)
     except onnx.checker.ValidationError as exc:
@@ -207,12 +256,10 @@ def check_graph(model: onnx.ModelProto) -> None:
     foreign = sorted({f"{d}::{op}" for d, op in counts if d not in STANDARD_DOMAINS})
     if foreign:
         raise ExportError(f"the exported graph uses non-standard operators: {', '.join(foreign)}")
-    inputs = [(i.name, _dims(i)) for i in model.graph.input]
-    outputs = [(o.name, _dims(o)) for o in model.graph.output]
-    if inputs != [(INPUT_NAME, ["batch", NET_WINDOW, "height", "width"])] or outputs != [
-        (OUTPUT_NAME, ["batch", 1, "height", "width"])
-    ]:
-        raise ExportError(f"unexpected graph I/O: inputs {inputs}, outputs {outputs}")
+    io = {v.name: _dims(v) for v in [*model.graph.input, *model.graph.output]}
+    expected = ONE_SHOT_IO if expected_io is None else expected_io
+    if io != expected:
+        raise ExportError(f"unexpected graph I/O: {io}, expected {expected}")
 
 
 def graph_kind(model: onnx.ModelProto) -> str:

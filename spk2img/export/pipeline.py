@@ -6,6 +6,9 @@
 3. For ``fp16``/``int8``, convert, and measure the variant against the fp32 graph and the
    ground truth on the validation set (:func:`~spk2img.export.quantize.precision_report`);
    the report is stored in the metadata as ``precision_report`` (JSON).
+4. For fp32, unless asked not to, also the block encoder and the align-and-fuse head
+   (:mod:`~spk2img.export.block_graphs`), streamed with block reuse against the PyTorch
+   one-shot network (:func:`~spk2img.export.block_graphs.block_parity`, to ``atol``).
 
 Nothing is written to ``out`` unless every check passes.
 """
@@ -21,6 +24,9 @@ from pathlib import Path
 
 import onnx
 
+from spk2img.core.block_model import block_graph_paths
+
+from .block_graphs import block_parity, export_block_graphs
 from .hard_cases import smoke_cases
 from .onnx_export import ExportConfig, ExportError, ExportSource, export_onnx
 from .quantize import MIN_PSNR_VS_FP32, PRECISIONS, precision_report, reduce_precision
@@ -34,6 +40,9 @@ class ExportResult:
     """fp32 torch/onnxruntime parity on the smoke cases."""
     precision: dict | None
     """:func:`~spk2img.export.quantize.precision_report` of a fp16/int8 variant, else None."""
+    block_parity: float | None = None
+    """Largest difference of the block graphs, streamed, from torch's one-shot output (None:
+    no block graphs were written)."""
 
 
 def export_verified(
@@ -43,9 +52,11 @@ def export_verified(
     precision: str = "fp32",
     atol: float = ATOL,
     progress: Callable[[CaseResult], None] | None = None,
+    block_graphs: bool = True,
 ) -> ExportResult:
     """Export ``source`` to ``out`` at ``precision`` and validate it (see the module doc;
-    ``config`` None: the default :class:`ExportConfig`);
+    ``config`` None: the default :class:`ExportConfig`; ``block_graphs``: also write the fp32
+    encoder and head beside ``out``);
     raises :class:`~spk2img.export.onnx_export.ExportError` if a check fails."""
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
@@ -73,5 +84,15 @@ def export_verified(
                 | {"precision_report": json.dumps(report, sort_keys=True)},
             )
             onnx.save_model(model, final, save_as_external_data=False)
+        parts_error = None
+        if block_graphs and precision == "fp32":
+            export_block_graphs(source, fp32_path, config)
+            parts_error = block_parity(fp32_path, source.model)
+            if not parts_error <= atol:
+                raise ExportError(
+                    f"the block encoder and head differ from torch by {parts_error:.3g} > {atol}"
+                )
+            for part, path in block_graph_paths(fp32_path).items():
+                shutil.move(path, block_graph_paths(out)[part])
         shutil.move(final, out)
-    return ExportResult(out, parity, report)
+    return ExportResult(out, parity, report, parts_error)

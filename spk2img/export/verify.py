@@ -29,8 +29,10 @@ import torch
 
 from spk2img.core.errors import InputError
 from spk2img.core.metrics import psnr
+from spk2img.core.windows import NET_WINDOW
 from spk2img.training.network import Spk2ImgNet
 
+from .block_graphs import stream_block_graphs, whole_windows
 from .hard_cases import Case, far_offset_copy
 from .metadata import weights_sha256
 from .onnx_export import (
@@ -189,6 +191,23 @@ def verify_onnx(
                 if progress:
                     progress(result)
     return VerifyReport(str(onnx_path), atol, results)
+
+
+def verify_block_graphs(
+    onnx_path: str | Path, model: Spk2ImgNet, spikes: np.ndarray, name: str, atol: float = ATOL
+) -> CaseResult:
+    """The block encoder and head beside ``onnx_path`` streamed at stride 7 over ``spikes``
+    ``(T, H, W)`` with block reuse, against ``model`` on each window whole (one thread)."""
+    start = time.perf_counter()
+    streamed, centers = stream_block_graphs(onnx_path, spikes)
+    onnx_s = time.perf_counter() - start
+    start = time.perf_counter()
+    reference = whole_windows(model, spikes, centers)
+    torch_s = time.perf_counter() - start
+    scores = compare_outputs(reference, streamed)
+    shape = (len(reference), NET_WINDOW, *spikes.shape[1:])
+    ok = scores["max_abs"] <= atol and scores["nonfinite"] == 0
+    return CaseResult(name, shape, 1, **scores, torch_s=torch_s, onnx_s=onnx_s, passed=ok)
 
 
 def onnx_session(path: str | Path, threads: int) -> ort.InferenceSession:

@@ -12,6 +12,7 @@ import numpy as np
 from fastapi import FastAPI
 
 from spk2img import __version__
+from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths
 from spk2img.core.onnx_backend import OnnxModel
 from spk2img.core.windows import NET_WINDOW
 
@@ -50,6 +51,11 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
     settings = state.settings
     state.model = await asyncio.to_thread(OnnxModel, settings.model_path, settings.intra_op_threads)
+    parts = block_graph_paths(settings.model_path).values()
+    if settings.block_reuse and all(path.is_file() for path in parts):
+        state.codec = await asyncio.to_thread(
+            OnnxBlockCodec, settings.model_path, settings.intra_op_threads
+        )
     state.pool = InferencePool(settings.job_workers, settings.max_queue)
     state.metrics.watch_pool(lambda: state.pool.jobs, lambda: state.pool.admitted)
     warm_up = asyncio.create_task(_warm_up(state))
@@ -61,12 +67,21 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         state.pool.shutdown()
 
 
+def _warm_up_codec(codec: OnnxBlockCodec) -> None:
+    block = np.zeros((codec.block_frames, WARMUP_SIZE, WARMUP_SIZE), np.float32)
+    code = codec.encode(block)
+    codec.head([code] * codec.num_blocks, WARMUP_SIZE, WARMUP_SIZE)
+
+
 async def _warm_up(state: ServiceState) -> None:
-    """Run the model once on zeros, then mark the service ready."""
+    """Run the model (and the block encoder and head) once on zeros, then mark the service
+    ready."""
     state.waiting_for = "the model to warm up"
     window = np.zeros((1, NET_WINDOW, WARMUP_SIZE, WARMUP_SIZE), np.float32)
     try:
         await state.pool.run(state.model, window)
+        if state.codec is not None:
+            await state.pool.run(_warm_up_codec, state.codec)
     except Exception as exc:  # noqa: BLE001 - reported by /readyz and the log, never fatal
         logger.exception("the model failed its warm-up")
         state.waiting_for = f"a model that runs (warm-up failed: {exc})"

@@ -14,6 +14,7 @@ import threading
 import numpy as np
 from PIL import Image
 
+from spk2img.core.block_model import BlockCodec
 from spk2img.core.framing import encode_frame
 from spk2img.core.light import to_display
 from spk2img.core.methods import build_reconstructor
@@ -44,7 +45,9 @@ def check_upload_size(settings: ServiceSettings, n_bytes: int, n_frames: int) ->
 class StreamJob:
     """Decode, reconstruct and encode one uploaded stream of ``query.height x query.width`` frames.
 
-    The network runs ``settings.batch`` windows per model call; classical methods push
+    The network runs ``settings.batch`` windows per model call, or, with a ``codec`` and
+    centres that share blocks, encodes each block once and runs the head per centre
+    (:func:`~spk2img.core.methods.build_reconstructor`); classical methods push
     :data:`STEP_PIXELS` at a time. Between steps the job checks for :meth:`cancel`.
     """
 
@@ -54,11 +57,19 @@ class StreamJob:
         plan: CenterPlan,
         settings: ServiceSettings,
         predict: Predictor | None = None,
+        codec: BlockCodec | None = None,
     ):
         self.query, self.settings = query, settings
         self.decoder = SpikeDecoder(query.height, query.width)
         self.recon = build_reconstructor(
-            query.method, query.height, query.width, plan, predict, settings.batch
+            query.method,
+            query.height,
+            query.width,
+            plan,
+            predict,
+            settings.batch,
+            codec,
+            query.quality,
         )
         pixels = query.height * query.width
         self.step = settings.batch if query.method == "net" else max(1, STEP_PIXELS // pixels)

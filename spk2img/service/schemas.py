@@ -6,6 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from spk2img.core.adaptive import QUALITIES
 from spk2img.core.framing import FORMATS
 from spk2img.core.light import DISPLAY_GAMMA
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
@@ -13,6 +14,7 @@ from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
 
 Method = Literal[METHODS]  # type: ignore[valid-type]
 FrameFormat = Literal[tuple(FORMATS)]  # type: ignore[valid-type]
+Quality = Literal[QUALITIES]  # type: ignore[valid-type]
 
 CENTERS_PATTERN = r"^[0-9]{1,12}(,[0-9]{1,12})*$"
 
@@ -37,6 +39,11 @@ class ReconstructQuery(BaseModel):
     method: Method = Field("net", description="net (the model), tfp or tfi")
     window: int = Field(
         DEFAULT_TFP_WINDOW, ge=1, le=1_000_000, description="TFP/TFI window (odd; net uses 41)"
+    )
+    quality: Quality = Field(
+        "best",
+        description="for net: best (the network everywhere), balanced (the network only on "
+        "tiles that move or are dim, TFP elsewhere) or fast (TFP over the 41 frames)",
     )
     format: FrameFormat = Field(
         "float32", description="float32 linear intensity, or uint8/png display values"
@@ -73,6 +80,9 @@ class ModelInfo(BaseModel):
     window: int = Field(description="spike frames per reconstruction")
     input_name: str = Field(description="the graph's input")
     metadata: dict[str, str] = Field(description="the ONNX metadata_props")
+    block_graphs: list[str] = Field(
+        description="the block encoder and head files in use (empty: every window runs whole)"
+    )
 
 
 class ModelsAnswer(BaseModel):

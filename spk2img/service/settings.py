@@ -48,6 +48,11 @@ class ServiceSettings(BaseSettings):
     max_tfi_pending: int = Field(64, ge=1, description="TFI centres waiting for a later spike")
     max_request_seconds: float = Field(300.0, gt=0, description="wall time of one request (s)")
     batch: int = Field(1, ge=1, description="41-frame windows per model call")
+    block_reuse: bool = Field(
+        True,
+        description="encode each 13-frame block once when centres share blocks (stride a "
+        "multiple of 7), with the encoder and head graphs beside the model",
+    )
     retry_after_seconds: int = Field(1, ge=0, description="Retry-After of a 503 (s)")
     log_level: LogLevel = Field("info", description="uvicorn log level")
 

@@ -7,6 +7,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
+from spk2img.core.block_model import OnnxBlockCodec
 from spk2img.core.onnx_backend import OnnxModel
 
 from .errors import RequestError
@@ -26,6 +27,8 @@ class ServiceState:
     settings: ServiceSettings
     metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
     model: OnnxModel | None = None
+    codec: OnnxBlockCodec | None = None
+    """The model's block encoder and head, when they are beside it and ``block_reuse`` is on."""
     pool: InferencePool | None = None
     ready: bool = False
     waiting_for: str = "the model to load"

@@ -1,18 +1,22 @@
 """Size and cost of a network: parameters and multiply-accumulates (MACs) per frame.
 
-MACs count the products of convolution weights with their inputs (``nn.Conv2d`` and the
-weights of :class:`ModulatedDeformConv2d`), as the toolkits' "GFLOPs" columns do; bilinear
-sampling, interpolation, activations and additions are left out. GFLOPs = 2 x GMACs.
+MACs count the products of convolution weights with their inputs — every convolution the
+forward pass runs, the deformable convs' weights included (their grid_sample implementation
+ends in a 1x1 convolution over the sampled taps, with exactly those MACs) — as the toolkits'
+"GFLOPs" columns do; bilinear sampling, interpolation, activations and additions are left out.
+GFLOPs = 2 x GMACs.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import nn
+from torch.utils.flop_counter import FlopCounterMode
 
 from .config import Spk2ImgNetConfig
-from .deform_conv import ModulatedDeformConv2d
-from .network import Spk2ImgNet
+from .network import Spk2ImgNet, pad_to_multiple
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -23,27 +27,43 @@ def count_parameters(model: nn.Module) -> int:
 def count_macs(config: Spk2ImgNetConfig, height: int = 250, width: int = 400) -> int:
     """MACs to reconstruct one ``height x width`` frame (after padding to the pyramid's multiple).
 
-    Runs the network on PyTorch's ``meta`` device (shapes only, no arithmetic) with forward hooks
-    on every convolution, so the count follows the code rather than a hand-kept formula.
+    Runs the network on PyTorch's ``meta`` device (shapes only, no arithmetic) under a FLOP
+    counter, so the count follows the code rather than a hand-kept formula.
     """
-    macs = 0
-
-    def conv_hook(module: nn.Conv2d, _inputs: tuple, output: torch.Tensor) -> None:
-        nonlocal macs
-        macs += output.numel() * module.weight[0].numel()  # (c_in / groups) * kh * kw per output
-
-    def deform_hook(module: ModulatedDeformConv2d, _inputs: tuple, output: torch.Tensor) -> None:
-        nonlocal macs
-        macs += output.numel() * module.weight[0].numel()
-
     with torch.device("meta"):
         model = Spk2ImgNet(config).eval()
         spikes = torch.zeros(1, config.window_frames, height, width)
-    for module in model.modules():
-        if isinstance(module, nn.Conv2d):
-            module.register_forward_hook(conv_hook)
-        elif isinstance(module, ModulatedDeformConv2d):
-            module.register_forward_hook(deform_hook)
-    with torch.no_grad():
-        model(spikes)
-    return macs
+    return _macs(lambda: model(spikes))
+
+
+def count_stream_macs(
+    config: Spk2ImgNetConfig, height: int = 250, width: int = 400
+) -> tuple[int, int]:
+    """``(encoder, head)``: MACs to encode one 13-frame block and to align and fuse one output
+    from five block codes, at ``height x width`` — the cost per output of a stream that encodes
+    each block once, when one new block arrives per output (centres 7 frames apart)."""
+    with torch.device("meta"):
+        model = Spk2ImgNet(config).eval()
+        block = pad_to_multiple(
+            torch.zeros(1, config.block_frames, height, width), config.size_multiple
+        )
+    codes: list = []
+    encoder = _macs(lambda: codes.extend(model.encode(block)))
+    pyramid, neighbour_terms, key_terms = codes
+
+    def stacked(levels: list[torch.Tensor], blocks: int) -> list[torch.Tensor]:
+        return [level.unsqueeze(1).expand(-1, blocks, -1, -1, -1) for level in levels]
+
+    blocks = config.num_blocks
+    head = _macs(
+        lambda: model.head(
+            stacked(pyramid, blocks), stacked(neighbour_terms, blocks - 1), key_terms
+        )  # fmt: skip
+    )
+    return encoder, head
+
+
+def _macs(run: Callable[[], object]) -> int:
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        run()
+    return counter.get_total_flops() // 2

@@ -70,6 +70,8 @@ async def reconstruct(
     its window has arrived."""
     settings = service.settings
     _check_content_type(request.headers.get("content-type"))
+    if query.quality != "best" and query.method != "net":
+        raise RequestError(422, f"quality is for method net, not {query.method}")
     plan = _plan(query, settings)
     length = request.headers.get("content-length")
     if length is not None:
@@ -81,7 +83,8 @@ async def reconstruct(
             f"busy: {service.pool.capacity} reconstructions in flight; try again later",
             {"Retry-After": str(settings.retry_after_seconds)},
         )
-    job = StreamJob(query, plan, settings, model if query.method == "net" else None)
+    net = query.method == "net"
+    job = StreamJob(query, plan, settings, model if net else None, service.codec if net else None)
     return FramesResponse(job, admission, settings.max_request_seconds, service.metrics)
 
 

@@ -1,0 +1,233 @@
+"""The streaming benchmark, written to ``bench_streaming.json`` and ``bench_streaming.md``:
+
+- block reuse: a long simulated stream reconstructed at every 7th frame, each window run whole
+  against each 13-frame block encoded once, side by side, each in its own fresh process;
+- quality tiers: ``best``, ``balanced`` and ``fast`` (:mod:`spk2img.core.adaptive`) on every
+  window of the benchmark set, time and PSNR/SSIM per scene class.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from spk2img.core.scenes import random_scene
+from spk2img.core.simulator import SensorConfig, simulate
+
+from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet
+from .scores import quality
+from .worker import WorkerError, run_job
+
+STREAM_STRIDE = 7
+MD_NAME, JSON_NAME = "bench_streaming.md", "bench_streaming.json"
+WORKER_TIMEOUT_S = 3600
+
+
+def stream_benchmark(
+    model: Path,
+    frames: int,
+    height: int,
+    width: int,
+    threads: tuple[int, ...],
+    work: Path,
+    log: Callable[[str], None],
+) -> dict:
+    """Time the ONNX ``model`` (with its block graphs beside it) on a ``frames``-frame stream of
+    a fast-moving scene (real-like sensor) at every 7th centre, whole and with block reuse, at
+    each thread count; with the outputs' largest difference and the MAC ratio."""
+    from spk2img.core.onnx_backend import OnnxModel
+    from spk2img.training.checkpoint import config_from_dict
+    from spk2img.training.complexity import count_macs, count_stream_macs
+
+    rng = np.random.default_rng([BENCH_SEED, 7])
+    log(f"simulating a {frames}-frame {height}x{width} stream (fast motion, real-like sensor)")
+    spikes = simulate(random_scene(rng, height, width, "fast", "normal"), frames,
+                      SensorConfig.real(), rng)  # fmt: skip
+    np.save(work / "stream.npy", spikes)
+    metadata = OnnxModel(model, 1).metadata
+    config = config_from_dict(json.loads(metadata["config"]))
+    encoder, head = count_stream_macs(config, height, width)
+    whole_macs = count_macs(config, height, width)
+    rows = []
+    for t in threads:
+        runs, images = {}, {}
+        for mode in ("whole", "reuse"):
+            spec = {"job": "stream", "model": str(model), "mode": mode, "threads": [t],
+                    "spikes": str(work / "stream.npy"), "stride": STREAM_STRIDE,
+                    "outputs": str(work / f"{mode}.npy")}  # fmt: skip
+            try:
+                runs[mode] = run_job(spec, WORKER_TIMEOUT_S)
+            except WorkerError as exc:
+                runs[mode] = {"error": str(exc)}
+                continue
+            images[mode] = np.load(work / f"{mode}.npy")
+            log(f"stream, {mode}, {t} thread(s): {runs[mode]['seconds']:.1f} s for "
+                f"{runs[mode]['outputs']} frames")  # fmt: skip
+        row = {"threads": t, **{mode: run for mode, run in runs.items()}}
+        if len(images) == 2:
+            row["ratio"] = runs["reuse"]["seconds"] / runs["whole"]["seconds"]
+            row["max_abs_diff"] = float(np.abs(images["reuse"] - images["whole"]).max())
+        rows.append(row)
+    return {
+        "model": metadata.get("name", model.stem),
+        "member": metadata.get("member"),
+        "graph": metadata.get("graph"),
+        "frames": frames,
+        "height": height,
+        "width": width,
+        "stride": STREAM_STRIDE,
+        "macs": {"whole": whole_macs, "encoder": encoder, "head": head},
+        "mac_ratio": (encoder + head) / whole_macs,
+        "rows": rows,
+    }
+
+
+def tiers_benchmark(
+    model: Path, cases: BenchSet, threads: tuple[int, ...], work: Path, log: Callable[[str], None]
+) -> dict:
+    """Each quality tier on every window of ``cases`` at each thread count (fresh processes):
+    median ms per scene class, the balanced tier's network share, and PSNR/SSIM."""
+    cases_dir = cases.save_spikes(work / "tier-cases")
+    height, width = cases.truth.shape[1:]
+    result: dict = {"threads": list(threads), "size": f"{height}x{width}",
+                    "per_class": len(cases) // len(SCENE_CLASSES), "tiers": {}}  # fmt: skip
+    for t in threads:
+        out = work / f"tiers-{t}"
+        out.mkdir(exist_ok=True)
+        spec = {"job": "tiers", "model": str(model), "threads": [t], "cases": str(cases_dir),
+                "outputs": str(out)}  # fmt: skip
+        try:
+            run = run_job(spec, WORKER_TIMEOUT_S)
+        except WorkerError as exc:
+            return {"error": str(exc)}
+        for tier, seconds in run["seconds"].items():
+            entry = result["tiers"].setdefault(tier, {"ms": {}})
+            entry["ms"][str(t)] = {
+                name: 1000 * float(np.median([s for s, c in zip(seconds, cases.classes,
+                                                                strict=True) if c == name]))
+                for name in SCENE_CLASSES
+            }  # fmt: skip
+            entry["quality"] = quality(np.load(out / f"{tier}.npy"), cases)
+        result["balanced_share"] = {
+            name: float(np.mean([s for s, c in zip(run["balanced_share"], cases.classes,
+                                                   strict=True) if c == name]))
+            for name in SCENE_CLASSES
+        }  # fmt: skip
+        log(
+            f"quality tiers, {t} thread(s): "
+            + ", ".join(
+                f"{tier} {np.median(s) * 1000:.0f} ms" for tier, s in run["seconds"].items()
+            )
+        )
+    return result
+
+
+def write_streaming_report(results: dict, out_dir: Path) -> list[Path]:
+    """Write ``bench_streaming.json`` and ``bench_streaming.md`` into ``out_dir``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [out_dir / JSON_NAME, out_dir / MD_NAME]
+    paths[0].write_text(json.dumps(results, indent=1) + "\n")
+    paths[1].write_text(streaming_markdown(results))
+    return paths
+
+
+def streaming_markdown(results: dict) -> str:
+    """``bench_streaming.md``: the command, the machine and the block-reuse table."""
+    s = results["streaming"]
+    macs = s["macs"]
+    if "rows" not in s:  # block reuse could not run
+        s = {**s, "rows": []}
+    lines = [
+        "# Benchmarks: streaming with block-feature reuse",
+        "",
+        f"Generated by `{results['command']}` on {results['date']}. Machine: "
+        f"{results['machine']['cpu']}, {results['machine']['cores_available']} cores.",
+        "",
+        f"A {s['frames']}-frame {s['height']}x{s['width']} simulated stream (fast motion, "
+        f"real-like sensor) reconstructed at every {s['stride']}th centre by `{s['model']}` "
+        f"(member `{s['member']}`, {s['graph']} graph) through onnxruntime, two ways, each in a "
+        "fresh process after one warm-up call: **whole** runs the one-shot graph on every "
+        "41-frame window; **reuse** encodes each 13-frame block once with the encoder graph and "
+        "runs only the align-and-fuse head per centre (`spk2img.core.block_stream`). Times are "
+        "the wall time of the whole stream (one run each, side by side in one bench run).",
+        "",
+        "| threads | frames out | whole (s) | reuse (s) | reuse / whole | blocks encoded | "
+        "max abs diff | peak RSS whole / reuse (MiB) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in s["rows"]:
+        if "ratio" not in row:
+            errors = "; ".join(row[m].get("error", "") for m in ("whole", "reuse") if m in row)
+            lines.append(f"| {row['threads']} | failed: {errors} | | | | | | |")
+            continue
+        whole, reuse = row["whole"], row["reuse"]
+        lines.append(
+            f"| {row['threads']} | {whole['outputs']} | {whole['seconds']:.1f} | "
+            f"{reuse['seconds']:.1f} | **{row['ratio']:.2f}** | {reuse['blocks_encoded']} "
+            f"(vs {5 * whole['outputs']} whole) | {row['max_abs_diff']:.1e} | "
+            f"{whole['peak_rss_mib']:.0f} / {reuse['peak_rss_mib']:.0f} |"
+        )
+    lines += [
+        "",
+        f"Multiply-accumulates per output at {s['height']}x{s['width']}: whole "
+        f"{macs['whole'] / 1e9:.1f} G; reuse {macs['encoder'] / 1e9:.1f} G (one block encoded) "
+        f"+ {macs['head'] / 1e9:.1f} G (align and fuse) = {s['mac_ratio']:.2f} of whole. "
+        "The head — pyramid deformable alignment of four neighbours to a key that changes with "
+        "every output, and the fusion — cannot be shared between outputs with equal results, "
+        "so it bounds what reuse can save (`spk2img models` lists that ratio for every "
+        "member); the time ratio also counts the bilinear sampling of the deformable convs, "
+        "which sits in the head and which the MAC count leaves out.",
+        "",
+        tiers_markdown(results.get("tiers")),
+    ]
+    return "\n".join(lines)
+
+
+def tiers_markdown(tiers: dict | None) -> str:
+    """The quality tiers' table: ms/frame and PSNR/SSIM per scene class."""
+    if tiers is None:
+        return ""
+    if "error" in tiers:
+        return f"## Quality tiers\n\nNot measured: {tiers['error']}\n"
+    classes = list(SCENE_CLASSES)
+    threads = [str(t) for t in tiers["threads"]]
+    lines = [
+        "## Quality tiers (`quality=best|balanced|fast`)",
+        "",
+        f"Every 41-frame window of the benchmark set of `docs/bench.md` ({tiers['size']}, "
+        f"{tiers['per_class']} per scene class, ideal and real-like sensors) through the "
+        "shipped model's ONNX graph, one "
+        "window at a time, each tier timed on each window in one process per thread count "
+        "(after a warm-up call). Cells: median ms/frame at "
+        f"{' / '.join(threads)} thread(s); PSNR dB / SSIM against the ground truth. "
+        "`balanced` runs the network only on the bounding box of the 16x16 tiles whose light "
+        "moves or is dim (plus 16 px of context) and TFP-41 elsewhere; `fast` is TFP-41.",
+        "",
+        "| tier | " + " | ".join(classes) + " | all: PSNR / SSIM |",
+        "| --- | " + " | ".join("---" for _ in classes) + " | --- |",
+    ]
+    for tier, entry in tiers["tiers"].items():
+        q = entry["quality"]
+        cells = [
+            " / ".join(_ms(entry["ms"][t][name]) for t in threads)
+            + f" ms; {q['classes'][name]['psnr']:.2f} / {q['classes'][name]['ssim']:.3f}"
+            for name in classes
+        ]
+        lines.append(f"| {tier} | " + " | ".join(cells) + f" | {q['psnr']:.2f} / "
+                     f"{q['ssim']:.3f} |")  # fmt: skip
+    share = tiers["balanced_share"]
+    lines += [
+        "",
+        "Share of the pixels the `balanced` tier ran the network on (context included): "
+        + ", ".join(f"{name} {share[name]:.0%}" for name in classes)
+        + ".",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _ms(value: float) -> str:
+    return f"{value:,.0f}" if value >= 10 else f"{value:.2f}"

@@ -1,0 +1,117 @@
+"""The network in two parts for streams: encode each 13-frame block once, then align and fuse.
+
+A :class:`BlockCodec` turns one block into its *code* (feature pyramid and offset-conv terms,
+:mod:`spk2img.export.block_graphs` has the layout) and five codes into an image.
+:class:`OnnxBlockCodec` runs the exported encoder and head graphs with onnxruntime (no torch);
+``spk2img.training.predictor.TorchBlockCodec`` runs the same split in PyTorch.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from .errors import InputError
+from .onnx_backend import cpu_session, default_model_path
+
+PART_FILES = {"encoder": ".encoder.onnx", "head": ".head.onnx"}
+"""Suffixes that replace ``.onnx`` of the one-shot graph for its two parts."""
+
+BlockCode = tuple[np.ndarray, ...]
+"""One block's code: :func:`code_names` order, ``(c, h_l, w_l)`` float32 each."""
+
+
+def code_names(levels: int) -> list[str]:
+    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``."""
+    return [f"{role}_l{i}" for role in ("feat", "nbr", "key") for i in range(1, levels + 1)]
+
+
+class BlockCodec(Protocol):
+    """Block encoder and align-and-fuse head of one network (batch 1)."""
+
+    block_frames: int
+    """Frames of a block (13)."""
+    block_stride: int
+    """Frames between the starts of a window's consecutive blocks (7)."""
+    num_blocks: int
+    """Blocks of a window (5); the middle one is the key."""
+
+    def encode(self, block: np.ndarray) -> BlockCode:
+        """``(block_frames, H, W)`` 0/1 spikes -> the block's code."""
+        ...
+
+    def head(self, codes: Sequence[BlockCode], height: int, width: int) -> np.ndarray:
+        """The codes of a window's blocks in temporal order -> ``(height, width)`` float32
+        linear intensity in [0, 1]."""
+        ...
+
+
+def block_graph_paths(model: str | Path) -> dict[str, Path]:
+    """``{part: path}`` of the encoder and head exported beside the one-shot graph ``model``."""
+    model = Path(model)
+    return {part: model.with_suffix(suffix) for part, suffix in PART_FILES.items()}
+
+
+class OnnxBlockCodec:
+    """The encoder and head graphs beside a one-shot graph, run with onnxruntime.
+
+    Args:
+        model: the one-shot graph (default: the shipped model); its parts are found by
+            :func:`block_graph_paths`.
+        threads: onnxruntime intra-op threads of each session (None: onnxruntime's default).
+
+    Raises :class:`InputError` when a part is missing or the parts hold other weights than
+    each other (their ``weights_sha256`` metadata differ).
+    """
+
+    def __init__(self, model: str | Path | None = None, threads: int | None = None):
+        paths = block_graph_paths(model if model is not None else default_model_path())
+        self.encoder = cpu_session(paths["encoder"], threads)
+        self.head_session = cpu_session(paths["head"], threads)
+        sessions = (self.encoder, self.head_session)
+        meta = [dict(session.get_modelmeta().custom_metadata_map) for session in sessions]
+        if meta[0].get("weights_sha256") != meta[1].get("weights_sha256"):
+            raise InputError(
+                f"{paths['encoder']} and {paths['head']} hold different weights "
+                "(weights_sha256 differs): export them again together"
+            )
+        self.metadata = meta[0]
+        config = json.loads(self.metadata["config"])
+        self.block_frames = int(config["block_frames"])
+        self.block_stride = int(config["block_stride"])
+        self.num_blocks = int(config["num_blocks"])
+        self.names = code_names(int(config["pyramid_levels"]))
+
+    def encode(self, block: np.ndarray) -> BlockCode:
+        outputs = self.encoder.run(
+            self.names, {"block": np.ascontiguousarray(block[None], np.float32)}
+        )
+        return tuple(out[0] for out in outputs)
+
+    def head(self, codes: Sequence[BlockCode], height: int, width: int) -> np.ndarray:
+        (image,) = self.head_session.run(None, head_inputs(codes, self.names, self.num_blocks))
+        return image[0, 0, :height, :width]
+
+
+def head_inputs(codes: Sequence[BlockCode], names: list[str], num_blocks: int) -> dict:
+    """The head's inputs from a window's block codes: every block's ``feat_l*`` stacked
+    ``(1, blocks, c, h, w)``, the neighbours' ``nbr_l*`` ``(1, blocks - 1, ...)``, the key's
+    ``key_l*`` ``(1, c, h, w)``."""
+    if len(codes) != num_blocks:
+        raise ValueError(f"the head takes {num_blocks} block codes, got {len(codes)}")
+    key = num_blocks // 2
+    neighbours = [code for i, code in enumerate(codes) if i != key]
+    feeds = {}
+    for index, name in enumerate(names):
+        role = name.split("_")[0]
+        if role == "feat":
+            feeds[name] = np.stack([code[index] for code in codes])[None]
+        elif role == "nbr":
+            feeds[name] = np.stack([code[index] for code in neighbours])[None]
+        else:
+            feeds[name] = codes[key][index][None]
+    return feeds

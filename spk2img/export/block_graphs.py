@@ -1,0 +1,170 @@
+"""The network as two ONNX graphs for streams: a block encoder and an align-and-fuse head.
+
+Consecutive outputs share most of their input: the windows of centres ``k`` and ``k + 7`` share
+four of their five 13-frame blocks. Exported this way, a streaming runtime
+(:class:`spk2img.core.block_stream.BlockReuseStream`) encodes each block once and keeps the
+codes of the blocks still needed, instead of re-running SALI and the feature extractor on every
+block of every output.
+
+**Encoder** ``<stem>.encoder.onnx``: input ``block`` ``(B, 13, H, W)`` float32 0/1; outputs, for
+each pyramid level ``l = 1 .. L`` (sizes ``hp / 2**(l-1)``, ``wp / 2**(l-1)`` where ``hp``,
+``wp`` are ``H``, ``W`` padded to ``2**(L-1)``):
+
+- ``feat_l{l}`` ``(B, c, h_l, w_l)``: the block's feature pyramid;
+- ``nbr_l{l}`` and ``key_l{l}`` ``(B, c, h_l, w_l)``: its terms of level ``l``'s first offset
+  conv as a neighbour and as the key (that conv is linear in ``[neighbour, key]``).
+
+**Head** ``<stem>.head.onnx``: inputs ``feat_l{l}`` ``(B, 5, c, h_l, w_l)`` (the five blocks in
+temporal order), ``nbr_l{l}`` ``(B, 4, c, h_l, w_l)`` (the four neighbours in order) and
+``key_l{l}`` ``(B, c, h_l, w_l)`` (the key block's); output ``image`` ``(B, 1, hp, wp)``, linear
+intensity in [0, 1], still padded: crop it to ``H x W``.
+
+Both carry the one-shot graph's metadata (same ``weights_sha256``) plus ``part``
+(``encoder`` / ``head``). Encoder then head equals the one-shot graph to float rounding.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from torch import nn
+from torch.export import Dim
+
+from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths, code_names
+from spk2img.core.block_stream import BlockReuseStream
+from spk2img.core.stream import collect, frame_chunks, run_stream
+from spk2img.core.windows import NET_WINDOW, CenterPlan
+from spk2img.training.network import Spk2ImgNet, pad_to_multiple, to_intensity
+
+from .onnx_export import ExportConfig, ExportSource, GraphIO, finish_graph, trace_to_onnx
+
+BLOCK_INPUT = "block"
+IMAGE_OUTPUT = "image"
+
+
+class BlockEncoder(nn.Module):
+    """``(B, 13, H, W)`` spikes -> the flat tuple of one block's codes (module doc)."""
+
+    def __init__(self, model: Spk2ImgNet) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, block: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        pyramid, neighbour_terms, key_terms = self.model.encode(
+            pad_to_multiple(block, self.model.config.size_multiple)
+        )
+        return (*pyramid, *neighbour_terms, *key_terms)
+
+
+class AlignFuseHead(nn.Module):
+    """The five blocks' codes (module doc) -> ``(B, 1, hp, wp)`` linear intensity in [0, 1]."""
+
+    def __init__(self, model: Spk2ImgNet) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(self, *codes: torch.Tensor) -> torch.Tensor:
+        levels = self.model.config.pyramid_levels
+        pyramid, neighbour_terms, key_terms = (
+            list(codes[i * levels : (i + 1) * levels]) for i in range(3)
+        )
+        pred = self.model.head(pyramid, neighbour_terms, key_terms)
+        return to_intensity(pred, pred.shape[-2], pred.shape[-1], training=False)
+
+
+def export_block_graphs(
+    source: ExportSource, out: str | Path, config: ExportConfig
+) -> dict[str, Path]:
+    """Write the encoder and head of ``source`` beside the one-shot graph ``out``
+    (``<stem>.encoder.onnx``, ``<stem>.head.onnx``); returns ``{part: path}``."""
+    model = source.model.eval()
+    cfg = model.config
+    levels = cfg.pyramid_levels
+    names = code_names(levels)
+    roles = [name.split("_")[0] for name in names]
+    paths = block_graph_paths(out)
+    # (batch, c, h_l, w_l) dims of each code, named after its level
+    code_dims = {name: ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"]
+                 for name in names}  # fmt: skip
+
+    block = torch.zeros(
+        config.example_batch, cfg.block_frames, config.example_height, config.example_width
+    )
+    block[:, ::3] = 1.0  # some spikes; the values do not shape the trace
+    encoder_io = GraphIO([BLOCK_INPUT], names, {BLOCK_INPUT: {0: "batch", 2: "height", 3: "width"}})
+    encoder = trace_to_onnx(BlockEncoder(model), (block,), encoder_io, config)
+    encoder_expected = {BLOCK_INPUT: ["batch", cfg.block_frames, "height", "width"], **code_dims}
+    _name_dims(list(encoder.graph.output), encoder_expected)
+    finish_graph(encoder, {**source.metadata, "part": "encoder"}, config, paths["encoder"],
+                 encoder_expected)  # fmt: skip
+
+    # the head takes every block's pyramid, the neighbours' terms and the key's terms
+    stacked = {"feat": cfg.num_blocks, "nbr": cfg.num_blocks - 1, "key": None}
+    with torch.no_grad():
+        codes = BlockEncoder(model)(block)
+    examples = tuple(
+        code if stacked[role] is None else code.unsqueeze(1).expand(-1, stacked[role], -1, -1, -1)
+        for code, role in zip(codes, roles, strict=True)
+    )
+    batch, coarse_h, coarse_w = Dim("batch"), Dim("coarse_height"), Dim("coarse_width")
+    shapes = []
+    for name, role in zip(names, roles, strict=True):
+        scale = 2 ** (levels - int(name[-1]))  # level l is 2**(L-l) times the coarsest
+        first = 2 if stacked[role] is None else 3  # the spatial axes
+        shapes.append({0: batch, first: scale * coarse_h, first + 1: scale * coarse_w})
+    head_io = GraphIO(names, [IMAGE_OUTPUT], (tuple(shapes),))
+    head = trace_to_onnx(AlignFuseHead(model), examples, head_io, config)
+    head_expected = {
+        name: [dims[0], *([] if stacked[role] is None else [stacked[role]]), *dims[1:]]
+        for (name, dims), role in zip(code_dims.items(), roles, strict=True)
+    } | {IMAGE_OUTPUT: ["batch", 1, "h_l1", "w_l1"]}
+    _name_dims([*head.graph.input, *head.graph.output], head_expected)
+    finish_graph(head, {**source.metadata, "part": "head"}, config, paths["head"], head_expected)
+    return paths
+
+
+def _name_dims(values: list[onnx.ValueInfoProto], expected: dict[str, list[str | int]]) -> None:
+    """Give the symbolic dims of ``values`` the names of ``expected`` (the exporter's are
+    expressions of the input's, such as ``4*ceil(s1/4)``), so the graph documents its contract."""
+    for value in values:
+        for dim, want in zip(value.type.tensor_type.shape.dim, expected[value.name], strict=True):
+            if isinstance(want, str):
+                dim.dim_param = want
+
+
+def block_parity(
+    model_path: str | Path,
+    model: Spk2ImgNet,
+    height: int = 17,
+    width: int = 23,
+    frames: int = 76,
+    seed: int = 0,
+) -> float:
+    """Largest difference between the block graphs beside ``model_path``, streamed with block
+    reuse at stride 7 over a random ``(frames, height, width)`` stream, and ``model`` run in
+    PyTorch on each window at once (linear intensity units)."""
+    spikes = (np.random.default_rng(seed).random((frames, height, width)) < 0.3).astype(np.uint8)
+    streamed, centers = stream_block_graphs(model_path, spikes)
+    return float(np.abs(streamed - whole_windows(model, spikes, centers)).max())
+
+
+def stream_block_graphs(
+    model_path: str | Path, spikes: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(T, H, W)`` spikes streamed at every 7th centre through the block graphs beside
+    ``model_path`` (one onnxruntime thread): ``frames (N, H, W)`` and ``centers (N,)``."""
+    height, width = spikes.shape[1:]
+    recon = BlockReuseStream(height, width, CenterPlan(NET_WINDOW, stride=7),
+                             OnnxBlockCodec(model_path, threads=1))  # fmt: skip
+    return collect(run_stream(recon, frame_chunks(spikes)), height, width)
+
+
+def whole_windows(model: Spk2ImgNet, spikes: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    """``model`` in PyTorch on the whole 41-frame window of each centre: ``(N, H, W)``."""
+    half = NET_WINDOW // 2
+    windows = np.stack([spikes[k - half : k + half + 1] for k in centers]).astype(np.float32)
+    with torch.no_grad():
+        return model.eval()(torch.from_numpy(windows))[0][:, 0].numpy()
