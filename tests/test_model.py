@@ -10,7 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from spk2img.training.complexity import count_macs, count_parameters
+from spk2img.training.complexity import count_macs, count_parameters, count_stream_macs
 from spk2img.training.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.training.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
 from spk2img.training.network import build_model
@@ -203,3 +203,29 @@ def test_gradients_reach_every_parameter(member):
         n for n, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0
     ]
     assert not silent
+
+
+@pytest.mark.parametrize("member", ["small", "tiny"])
+def test_offset_conv_terms_add_up_to_the_conv_on_the_pair(member):
+    """The first offset conv of each level is computed as a neighbour term plus a key term;
+    together they are the conv on ``[neighbour, key]``."""
+    torch.manual_seed(0)
+    model = build_model(member).eval()
+    c, levels = model.config.channels, model.config.pyramid_levels
+    neighbour = [torch.randn(2, c, 16 // 2**i, 24 // 2**i) for i in range(levels)]
+    key = [torch.randn(2, c, 16 // 2**i, 24 // 2**i) for i in range(levels)]
+    terms = zip(model.align.neighbour_terms(neighbour), model.align.key_terms(key), strict=True)
+    for i, (n_term, k_term) in enumerate(terms, start=1):
+        conv = model.align.offset_conv1[f"l{i}"]
+        whole = conv(torch.cat([neighbour[i - 1], key[i - 1]], dim=1))
+        torch.testing.assert_close(n_term + k_term, whole, atol=1e-5, rtol=1e-5)
+
+
+def test_stream_macs_split_the_network():
+    """Encoding five blocks and running the head costs what the one-shot forward costs, up to
+    the offset-conv terms the encoder computes for both roles of every block."""
+    for config in MEMBERS.values():
+        encoder, head = count_stream_macs(config, 40, 48)
+        whole = count_macs(config, 40, 48)
+        assert 0 < head < whole < 5 * encoder + head
+        assert (5 * encoder + head - whole) / whole < 0.05

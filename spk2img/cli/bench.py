@@ -93,11 +93,14 @@ def bench_options(args: argparse.Namespace):
     if len(set(names)) < len(names):
         raise InputError("--trained names must be unique and differ from the members and 'shipped'")
     command = ["spk2img bench", "--quick" if args.quick else "", f"--out-dir {args.out_dir}",
-               f"--threads {','.join(map(str, threads))}", f"--repeats {repeats}",
-               f"--members {','.join(members)}", *(f"--trained {n}={p}" for n, p in trained),
-               "--skip-service" if args.skip_service else "",
-               "--skip-streaming" if args.skip_streaming else "",
-               "--streaming-only" if args.streaming_only else ""]  # fmt: skip
+               f"--threads {','.join(map(str, threads))}"]  # fmt: skip
+    if args.streaming_only:  # the rows' options do not apply
+        command.append("--streaming-only")
+    else:
+        command += [f"--repeats {repeats}", f"--members {','.join(members)}",
+                    *(f"--trained {n}={p}" for n, p in trained),
+                    "--skip-service" if args.skip_service else "",
+                    "--skip-streaming" if args.skip_streaming else ""]  # fmt: skip
     return BenchOptions(
         replace(scale, repeats=repeats, members=members),
         threads,

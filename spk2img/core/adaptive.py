@@ -23,8 +23,8 @@ What the bench showed (shipped model, 250x400, 2 threads), and so the rule: on s
 ``balanced`` costs 13 ms instead of 751 ms for 3.0 dB less than ``best`` (still 1.2 dB over
 TFP-41); on slow, fast and dim windows the test sends 75-100 % of the pixels to the network, so
 it saves nothing and loses 0-1.0 dB where TFP fills in; on bright, slowly moving windows
-(66 %) it is 16 % faster for 2.0 dB less. ``best`` therefore stays the default; ``balanced`` is for footage that is mostly still (fixed cameras), ``fast`` for
-previews.
+(66 %) it is 16 % faster for 2.0 dB less. ``best`` therefore stays the default;
+``balanced`` is for footage that is mostly still (fixed cameras), ``fast`` for previews.
 """
 
 from __future__ import annotations
