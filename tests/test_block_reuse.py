@@ -138,6 +138,8 @@ def test_cli_reuse_equals_no_reuse_and_service_equals_cli(tmp_path, scene_stream
         assert main([*args, "--url", server.url, "--no-progress"]) == 0
     frames = {k: np.load(v)["frames"] for k, v in outs.items()}
     assert frames["reuse"].shape == (12, HEIGHT, WIDTH)
+    err = capsys.readouterr().err
+    assert "each 13-frame block encoded once: 16 blocks" in err  # starts 0, 7 .. 105
     np.testing.assert_allclose(frames["reuse"], frames["whole"], atol=1e-5)
     np.testing.assert_allclose(frames["torch"], frames["whole"], atol=1e-5)
     np.testing.assert_array_equal(frames["remote"], frames["reuse"])

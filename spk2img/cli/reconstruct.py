@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.cli.extras import needs_extra
-from spk2img.core.adaptive import QUALITIES
+from spk2img.core.adaptive import QUALITIES, BalancedStream
+from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.errors import InputError
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, method_plan
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, read_spikes
@@ -66,16 +67,17 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--quality is for --method net, not {args.method}")
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
+    how = ""
     if args.url:
         frames, centers = _reconstruct_remote(args, stride)
     else:
-        frames, centers = _reconstruct_local(args, stride)
+        frames, centers, how = _reconstruct_local(args, stride)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(args.out, frames=frames, centers=centers)
     if args.png_dir:
         save_pngs(args.png_dir, frames, centers)
     print(
-        f"wrote {len(centers)} frames of {frames.shape[1]}x{frames.shape[2]} to {args.out}",
+        f"wrote {len(centers)} frames of {frames.shape[1]}x{frames.shape[2]} to {args.out}{how}",
         file=sys.stderr,
     )
     return 0
@@ -95,7 +97,17 @@ def _reconstruct_local(args: argparse.Namespace, stride: int | None):
     )
     results = run_stream(recon, frame_chunks(spikes))
     bar = tqdm(results, total=n_out, unit="frame", disable=args.no_progress, file=sys.stderr)
-    return collect(bar, height, width)
+    return (*collect(bar, height, width), compute_note(recon))
+
+
+def compute_note(recon) -> str:
+    """What the network's work came to, for the closing message ('' for whole windows)."""
+    if isinstance(recon, BlockReuseStream):
+        return f" (each 13-frame block encoded once: {recon.blocks_encoded} blocks)"
+    if isinstance(recon, BalancedStream) and recon.network_share:
+        share = sum(recon.network_share) / len(recon.network_share)
+        return f" (quality balanced: the network ran on {share:.0%} of the pixels)"
+    return ""
 
 
 def load_predictor(args: argparse.Namespace):
