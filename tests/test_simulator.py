@@ -25,6 +25,7 @@ from spk2img.core.simulator import (
     GT_FRAMES,
     SensorConfig,
     SpikeSimulator,
+    filmed_sample,
     ground_truth,
     simulate,
     training_sample,
@@ -173,6 +174,19 @@ def test_training_sample_gt_is_the_scene_at_the_block_centres():
     scene = random_scene(rng, 32, 32)
     assert np.array_equal(gt, np.stack([scene.intensity(k + 0.5) for k in GT_FRAMES]))
     assert np.array_equal(spikes, simulate(scene, 41, SensorConfig.ideal(), rng))
+
+
+def test_filmed_sample_is_the_training_sample_and_names_its_sensor():
+    # the validation and test sets use filmed_sample: the same draws as training_sample
+    for seed in range(6):
+        spikes, gt = training_sample(np.random.default_rng(seed), 24, 32)
+        again, gt_again, sensor = filmed_sample(np.random.default_rng(seed), 24, 32)
+        assert np.array_equal(spikes, again) and np.array_equal(gt, gt_again)
+        rng = np.random.default_rng(seed)
+        random_scene(rng, 24, 32)
+        assert sensor == SensorConfig.random(rng)
+    kinds = {filmed_sample(np.random.default_rng(s), 8, 8)[2].shot_noise for s in range(12)}
+    assert kinds == {True, False}  # both regimes are drawn
 
 
 # --- scenes: motion, brightness, ground truth --------------------------------------------------

@@ -184,6 +184,19 @@ def training_sample(
     Returns ``spikes (41, H, W) uint8`` and ``gt (5, H, W) float32``, the ground truth at the
     five block centres, frames 6, 13, 20, 27 and 34.
     """
+    spikes, gt, _ = filmed_sample(rng, height, width, sensor, motion, brightness)
+    return spikes, gt
+
+
+def filmed_sample(
+    rng: np.random.Generator,
+    height: int,
+    width: int,
+    sensor: SensorConfig | None = None,
+    motion: str | None = None,
+    brightness: str | None = None,
+) -> tuple[np.ndarray, np.ndarray, SensorConfig]:
+    """:func:`training_sample` (same draws from ``rng``, same arrays) and the sensor it used."""
     scene = random_scene(rng, height, width, motion, brightness)
     sensor = sensor or SensorConfig.random(rng)
-    return simulate(scene, NET_WINDOW, sensor, rng), ground_truth(scene, GT_FRAMES)
+    return simulate(scene, NET_WINDOW, sensor, rng), ground_truth(scene, GT_FRAMES), sensor

@@ -18,6 +18,7 @@ from .network import Spk2ImgNet
 from .validation import (
     BRIGHTNESS,
     MOTIONS,
+    SENSORS,
     TEST_SEED,
     baseline_scores,
     network_scorer,
@@ -25,7 +26,7 @@ from .validation import (
     validation_set,
 )
 
-CLASSES = [f"psnr_{c}" for c in (*MOTIONS, *BRIGHTNESS)]
+CLASSES = [f"psnr_{c}" for c in (*MOTIONS, *BRIGHTNESS, *SENSORS)]
 
 
 def evaluate_on_test_set(onnx_path: Path, per_class: int, height: int, width: int) -> dict:
@@ -36,7 +37,8 @@ def evaluate_on_test_set(onnx_path: Path, per_class: int, height: int, width: in
 
 
 def _row(name: str, s: dict) -> str:
-    cells = [f"{s['psnr']:.2f}", f"{s['ssim']:.3f}"] + [f"{s[c]:.2f}" for c in CLASSES]
+    cells = [f"{s['psnr']:.2f}", f"{s['ssim']:.3f}"]
+    cells += [f"{s[c]:.2f}" if c in s else "—" for c in CLASSES]
     return f"| {name} | " + " | ".join(cells) + " |"
 
 
@@ -99,7 +101,8 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
 ## Held-out test scenes ({test_shape[0]} per class, {test_shape[1]}x{test_shape[2]}, seeds no
 training or validation batch uses)
 Mean PSNR against ground truth over all scenes and per class (motion: static/slow/fast;
-brightness: dim/normal/bright). TFP uses the best of all odd windows 3–41 per scene (an oracle).
+brightness: dim/normal/bright; sensor: noise-free integrate-and-fire or real-like, drawn per
+scene). TFP uses the best of all odd windows 3–41 per scene (an oracle).
 
 {header}
 {rule}

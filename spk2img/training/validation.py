@@ -14,12 +14,13 @@ import numpy as np
 
 from spk2img.core.classical import tfi, tfp
 from spk2img.core.metrics import psnr, ssim
-from spk2img.core.simulator import training_sample
+from spk2img.core.simulator import SensorConfig, filmed_sample
 
 VALIDATION_SEED = 987_654_321  # disjoint from training seeds (which are < 10**6 in practice)
 TEST_SEED = 123_456_789  # the model card's held-out test scenes, used by nothing else
 MOTIONS = ("static", "slow", "fast")
 BRIGHTNESS = ("dim", "normal", "bright")
+SENSORS = ("ideal", "real")  # noise-free integrate-and-fire, or any real-like sensor
 TFP_WINDOWS = tuple(range(3, 42, 2))
 KEY = 2  # the key block's index among the five ground-truth block centres
 
@@ -30,6 +31,7 @@ class ValidationScene:
     truth: np.ndarray  # (H, W) float32, ground truth at the window's centre
     motion: str
     brightness: str
+    sensor: str  # one of SENSORS
 
 
 def validation_set(
@@ -44,8 +46,9 @@ def validation_set(
     for i, (motion, light) in enumerate(product(MOTIONS, BRIGHTNESS)):
         for j in range(per_class):
             rng = np.random.default_rng([seed, i, j])
-            spikes, truth = training_sample(rng, height, width, motion=motion, brightness=light)
-            scenes.append(ValidationScene(spikes, truth[KEY], motion, light))
+            spikes, truth, sensor = filmed_sample(rng, height, width, None, motion, light)
+            kind = "ideal" if sensor == SensorConfig.ideal() else "real"
+            scenes.append(ValidationScene(spikes, truth[KEY], motion, light, kind))
     return scenes
 
 
@@ -67,7 +70,7 @@ def tfi_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
 def score(
     method: Callable[[np.ndarray, np.ndarray], np.ndarray], scenes: list[ValidationScene]
 ) -> dict:
-    """Mean PSNR (dB) and SSIM over all scenes and per motion/brightness class."""
+    """Mean PSNR (dB) and SSIM over all scenes; mean PSNR per motion, brightness and sensor."""
     rows = []
     for scene in scenes:
         image = method(scene.spikes, scene.truth)
@@ -76,7 +79,7 @@ def score(
         "psnr": float(np.mean([r[1] for r in rows])),
         "ssim": float(np.mean([r[2] for r in rows])),
     }
-    for attr, names in (("motion", MOTIONS), ("brightness", BRIGHTNESS)):
+    for attr, names in (("motion", MOTIONS), ("brightness", BRIGHTNESS), ("sensor", SENSORS)):
         for name in names:
             sel = [r for r in rows if getattr(r[0], attr) == name]
             if sel:
