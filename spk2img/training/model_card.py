@@ -42,7 +42,9 @@ def _row(name: str, s: dict) -> str:
     return f"| {name} | " + " | ".join(cells) + " |"
 
 
-def render(checkpoint: Path, onnx_path: Path, run_dir: Path, test: dict, test_shape) -> str:
+def render(
+    checkpoint: Path, onnx_path: Path, run_dir: Path, test: dict, test_shape, history: str = ""
+) -> str:
     state = load_checkpoint(checkpoint)
     config = config_from_dict(state["config"])
     params = count_parameters(Spk2ImgNet(config))
@@ -57,6 +59,14 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, test: dict, test_sh
     rule = "|---" * (3 + len(CLASSES)) + "|"
     gain_tfp = test["network"]["psnr"] - test["tfp_best"]["psnr"]
     gain_tfi = test["network"]["psnr"] - test["tfi"]["psnr"]
+    patch = f"{tc['patch']}x{tc['patch']}"
+    samples = (
+        f"a pool of {tc['cache_size']} simulated {patch} windows"
+        if tc["cache_size"]
+        else f"a freshly simulated {patch} window for every sample (none seen twice)"
+    )
+    history_line = f"- history: {history}\n" if history else ""
+    resume = f"mkdir -p runs/{run_dir.name} && cp {run_dir}/last.pt runs/{run_dir.name}/"
     val_rows = "\n".join(
         f"| {r['step']} | {r['wall_s'] / 3600:.2f} | {r['psnr']:.2f} | {r['ssim']:.3f} |"
         for r in vals
@@ -87,9 +97,8 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
   motion (static / slow 0.03–0.3 / fast 0.5–3 px/frame: translation, rotation, zoom, non-rigid
   flow, 4 sub-steps per frame), brightness classes dim / normal / bright with random gamma;
   the sensor drawn per sample: half ideal integrate-and-fire (as spike-REDS), half real-like
-  (Poisson shot noise, dark current, threshold mismatch, hot pixels); a pool of
-  {tc["cache_size"]} simulated {tc["patch"]}x{tc["patch"]} windows with random 90° rotations
-  and flips.
+  (Poisson shot noise, dark current, threshold mismatch, hot pixels);
+  {samples}, with random 90° rotations and flips.
 - loss: hierarchical L1 (λ = 0.02); Adam, peak lr {tc["lr"]}, warm-up {tc["warmup_steps"]}
   steps, cosine decay; batch {tc["batch_size"]}; seed {tc["seed"]}.
 - steps: **{state["step"]}** of {tc["steps"]} planned; wall time **{state["wall_s"] / 3600:.2f} h**
@@ -97,6 +106,8 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
 - command: `spk2img train --member {tc["member"]} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]}
   --cache-size {tc["cache_size"]} --threads {tc["threads"]}`
+{history_line}- to continue: `{resume}`,
+  then the command above with a larger `--steps` (batches are a function of seed and step).
 
 ## Held-out test scenes ({test_shape[0]} per class, {test_shape[1]}x{test_shape[2]}, seeds no
 training or validation batch uses)
@@ -136,12 +147,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--out", type=Path, default=Path("docs/model_card.md"))
     p.add_argument("--per-class", type=int, default=4)
     p.add_argument("--size", default="96x128", help="test scene H x W")
+    p.add_argument("--history", default="", help="how the run went (resumes, schedule changes)")
     args = p.parse_args(argv)
     h, w = (int(v) for v in args.size.split("x"))
     test = evaluate_on_test_set(args.onnx, args.per_class, h, w)
     (args.out.with_suffix(".json")).write_text(json.dumps(test, indent=2))
     args.out.write_text(
-        render(args.checkpoint, args.onnx, args.run_dir, test, (args.per_class, h, w))
+        render(args.checkpoint, args.onnx, args.run_dir, test, (args.per_class, h, w), args.history)
     )
     print(f"wrote {args.out}")
 
