@@ -12,6 +12,7 @@ from spk2img.core.adaptive import (
     _tile_means,
     balanced_image,
     network_tiles,
+    tile_statistics,
 )
 from spk2img.core.scenes import random_scene
 from spk2img.core.simulator import SensorConfig, simulate
@@ -27,8 +28,7 @@ def _window(motion: str, brightness: str, sensor: str, seed: int, size=(64, 96))
 
 
 def _change(window: np.ndarray) -> np.ndarray:
-    first, second = window[:20].sum(0, dtype=np.float32), window[21:].sum(0, dtype=np.float32)
-    return _tile_means((first - second) ** 2)
+    return tile_statistics(window)[0]
 
 
 @pytest.mark.parametrize("brightness", ["dim", "normal", "bright"])

@@ -55,14 +55,20 @@ def check_quality(quality: str) -> str:
     return quality
 
 
-def network_tiles(window: np.ndarray) -> np.ndarray:
-    """``(41, H, W)`` 0/1 spikes -> ``(ceil(H / 16), ceil(W / 16))`` bool: the tiles whose light
-    moves or is dim (the network's), per the module's rule."""
+def tile_statistics(window: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(41, H, W)`` 0/1 spikes -> ``(change, count)``, each ``(ceil(H / 16), ceil(W / 16))``
+    float32 per tile: the mean of (spikes in the first half - spikes in the second half)^2
+    (spikes^2; the centre frame in neither half) and the mean spike count of both halves."""
     half = len(window) // 2
     first = window[:half].sum(0, dtype=np.float32)
     second = window[half + 1 :].sum(0, dtype=np.float32)
-    change = _tile_means((first - second) ** 2)
-    count = _tile_means(first + second)
+    return _tile_means((first - second) ** 2), _tile_means(first + second)
+
+
+def network_tiles(window: np.ndarray) -> np.ndarray:
+    """``(41, H, W)`` 0/1 spikes -> ``(ceil(H / 16), ceil(W / 16))`` bool: the tiles whose light
+    moves or is dim (the network's), per the module's rule."""
+    change, count = tile_statistics(window)
     return (change > MOTION_THRESHOLD) | (count < DIM_COUNT)
 
 
