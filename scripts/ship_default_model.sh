@@ -2,9 +2,10 @@
 # Ship a training run's best checkpoint as the default model: strip the optimiser state, export
 # and verify the ONNX graph, write the model card and the README figure, and keep the run's
 # resumable state (last.pt + metrics log) in training_state/ so a later session can continue it.
-# Usage: scripts/ship_default_model.sh runs/tiny-v1
+# Usage: scripts/ship_default_model.sh runs/small-v1 [MODEL-CARD OPTIONS, e.g. --history "..."]
 set -euo pipefail
-run=${1:?usage: $0 RUN_DIR}
+run=${1:?usage: $0 RUN_DIR [MODEL-CARD OPTIONS]}
+shift
 models=spk2img/assets/models
 state=training_state/$(basename "$run")
 mkdir -p "$models" "$state" docs
@@ -13,5 +14,5 @@ spk2img export "$models/spk2img-default.pt" --out "$models/spk2img-default.onnx"
 spk2img verify "$models/spk2img-default.onnx" --json docs/verify_default.json | tee docs/verify_default.txt
 cp "$run/last.pt" "$run/metrics.jsonl" "$state/"
 python -m spk2img.training.model_card --checkpoint "$models/spk2img-default.pt" \
-    --onnx "$models/spk2img-default.onnx" --run-dir "$state"
+    --onnx "$models/spk2img-default.onnx" --run-dir "$state" "$@"
 python scripts/readme_figure.py
