@@ -9,7 +9,7 @@ shift
 models=spk2img/assets/models
 state=training_state/$(basename "$run")
 mkdir -p "$models" "$state" docs
-python -c "from spk2img.training.checkpoint import release_checkpoint as r; r('$run/best.pt', '$models/spk2img-default.pt')"
+python -c "from spk2img.model.checkpoint import release_checkpoint as r; r('$run/best.pt', '$models/spk2img-default.pt')"
 spk2img export "$models/spk2img-default.pt" --out "$models/spk2img-default.onnx" --name spk2img-default --deform-conv
 spk2img verify "$models/spk2img-default.onnx" --json docs/verify_default.json | tee docs/verify_default.txt
 cp "$run/last.pt" "$run/metrics.jsonl" "$state/"

@@ -18,7 +18,7 @@ from spk2img.core.scenes import random_scene
 from spk2img.core.simulator import SensorConfig, simulate
 from spk2img.core.stream import NetStream, collect, frame_chunks, run_stream
 from spk2img.core.windows import CenterPlan
-from spk2img.training.predictor import TorchPredictor
+from spk2img.model.predictor import TorchPredictor
 
 HEIGHT, WIDTH = 26, 35  # not multiples of the pyramid's 2: the padding is exercised
 

@@ -28,8 +28,8 @@ from spk2img.export.onnx_export import (
 from spk2img.export.pipeline import export_verified
 from spk2img.export.quantize import MIN_PSNR_VS_FP32, precision_report, reduce_precision
 from spk2img.export.verify import ATOL, reference_model, verify_onnx
-from spk2img.training.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
-from spk2img.training.predictor import TorchPredictor
+from spk2img.model.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
+from spk2img.model.predictor import TorchPredictor
 
 torch.set_num_threads(1)
 EXAMPLE = ExportConfig(example_height=16, example_width=16)  # traced at 1x41x16x16

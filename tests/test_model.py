@@ -10,10 +10,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from spk2img.training.complexity import count_macs, count_parameters, count_stream_macs
-from spk2img.training.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
-from spk2img.training.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
-from spk2img.training.network import build_model
+from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
+from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
+from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
+from spk2img.model.network import build_model
 
 torch.set_num_threads(1)
 

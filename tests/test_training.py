@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from spk2img.training.checkpoint import load_checkpoint, load_model
+from spk2img.model.checkpoint import load_checkpoint, load_model
 from spk2img.training.data import SimulatedBatches
 from spk2img.training.loss import hierarchical_l1
 from spk2img.training.train import TrainConfig, learning_rate, train

@@ -25,7 +25,7 @@ class Weights:
     name: str
     """Row label: a member name (``tiny``) or a trained model's name (``shipped``)."""
     checkpoint: Path
-    """The checkpoint (config and weights, :mod:`spk2img.training.checkpoint`)."""
+    """The checkpoint (config and weights, :mod:`spk2img.model.checkpoint`)."""
     trained: bool
     """Whether the weights were trained (untrained ones are timed but never scored)."""
     onnx: Path | None = None
@@ -51,7 +51,7 @@ class Weights:
 def random_member(member: str, directory: Path) -> Weights:
     """Family member ``member`` with the exporter's seeded random weights, also saved as a
     checkpoint for the PyTorch row (so that every backend runs the very same weights)."""
-    from spk2img.training.checkpoint import config_to_dict, save_checkpoint
+    from spk2img.model.checkpoint import config_to_dict, save_checkpoint
 
     weights = Weights(member, directory / f"{member}-random.pt", False, random_member=member)
     model = weights.export_source().model
@@ -64,7 +64,7 @@ def random_member(member: str, directory: Path) -> Weights:
 def shipped() -> Weights | None:
     """The shipped default model, if this installation has both of its files."""
     from spk2img.core.onnx_backend import default_model_path
-    from spk2img.training.predictor import DEFAULT_CHECKPOINT
+    from spk2img.model.predictor import DEFAULT_CHECKPOINT
 
     onnx = default_model_path()
     if not (onnx.is_file() and DEFAULT_CHECKPOINT.is_file()):
@@ -120,9 +120,9 @@ def cost(weights: Weights, sizes: dict[str, tuple[int, int]]) -> dict:
     """``params`` and ``macs`` per frame at each named ``(height, width)`` of ``sizes``."""
     import torch
 
-    from spk2img.training.checkpoint import config_from_dict, load_checkpoint
-    from spk2img.training.complexity import count_macs, count_parameters
-    from spk2img.training.network import build_model
+    from spk2img.model.checkpoint import config_from_dict, load_checkpoint
+    from spk2img.model.complexity import count_macs, count_parameters
+    from spk2img.model.network import build_model
 
     config = config_from_dict(load_checkpoint(weights.checkpoint)["config"])
     with torch.device("meta"):

@@ -93,7 +93,7 @@ class NetRow:
 
     def build(self, threads: int) -> Reconstruct:
         if self.backend == "torch":
-            from spk2img.training.predictor import TorchPredictor
+            from spk2img.model.predictor import TorchPredictor
 
             predict = TorchPredictor(self.path, threads=threads)
         else:

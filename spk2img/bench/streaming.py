@@ -39,8 +39,8 @@ def stream_benchmark(
     a fast-moving scene (real-like sensor) at every 7th centre, whole and with block reuse, at
     each thread count; with the outputs' largest difference and the MAC ratio."""
     from spk2img.core.onnx_backend import OnnxModel
-    from spk2img.training.checkpoint import config_from_dict
-    from spk2img.training.complexity import count_macs, count_stream_macs
+    from spk2img.model.checkpoint import config_from_dict
+    from spk2img.model.complexity import count_macs, count_stream_macs
 
     rng = np.random.default_rng([BENCH_SEED, 7])
     log(f"simulating a {frames}-frame {height}x{width} stream (fast motion, real-like sensor)")

@@ -75,7 +75,7 @@ def bench_options(args: argparse.Namespace):
     """:class:`~spk2img.bench.runner.BenchOptions` from the arguments (:class:`InputError` for
     bad ones), with the command line that reproduces them."""
     from spk2img.bench.runner import FULL, QUICK, BenchOptions
-    from spk2img.training.config import MEMBERS
+    from spk2img.model.config import MEMBERS
 
     scale = QUICK if args.quick else FULL
     threads = _positive_ints(args.threads, "--threads")

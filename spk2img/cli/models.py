@@ -22,9 +22,9 @@ def run(args: argparse.Namespace) -> int:
     check_size(args.height, args.width)
     import torch
 
-    from spk2img.training.complexity import count_macs, count_parameters, count_stream_macs
-    from spk2img.training.config import MEMBERS
-    from spk2img.training.network import build_model
+    from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
+    from spk2img.model.config import MEMBERS
+    from spk2img.model.network import build_model
 
     size = f"G MACs/{args.height}x{args.width}"
     print(f"{'member':<8} {'parameters':>12} {size:>18} {'block reuse':>14} {'ratio':>6}")

@@ -114,7 +114,7 @@ def load_predictor(args: argparse.Namespace):
     """The model for ``--method net``: ONNX by default, torch with ``--backend torch``."""
     if args.backend == "torch":
         with needs_extra("train", "--backend torch"):
-            from spk2img.training.predictor import TorchPredictor
+            from spk2img.model.predictor import TorchPredictor
         return TorchPredictor(args.checkpoint, threads=args.threads)
     from spk2img.core.onnx_backend import OnnxModel
 

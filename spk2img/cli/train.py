@@ -47,7 +47,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     with needs_extra("train", "training"):
         config_cls, fields = _fields()
-    from spk2img.training.config import MEMBERS
+    from spk2img.model.config import MEMBERS
     from spk2img.training.train import train
 
     values = {

@@ -3,7 +3,7 @@
 A :class:`BlockCodec` turns one block into its *code* (feature pyramid and offset-conv terms,
 :mod:`spk2img.export.block_graphs` has the layout) and five codes into an image.
 :class:`OnnxBlockCodec` runs the exported encoder and head graphs with onnxruntime (no torch);
-``spk2img.training.predictor.TorchBlockCodec`` runs the same split in PyTorch.
+``spk2img.model.predictor.TorchBlockCodec`` runs the same split in PyTorch.
 """
 
 from __future__ import annotations

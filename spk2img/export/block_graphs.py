@@ -37,7 +37,7 @@ from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths, code_nam
 from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.stream import collect, frame_chunks, run_stream
 from spk2img.core.windows import NET_WINDOW, CenterPlan
-from spk2img.training.network import Spk2ImgNet, pad_to_multiple, to_intensity
+from spk2img.model.network import Spk2ImgNet, pad_to_multiple, to_intensity
 
 from .onnx_export import ExportConfig, ExportSource, GraphIO, finish_graph, trace_to_onnx
 

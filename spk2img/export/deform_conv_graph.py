@@ -2,7 +2,7 @@
 
 No torchvision: while :func:`deform_conv_as_custom_op` is active, the network's deformable convs
 call ``torch.ops.spk2img.modulated_deform_conv2d``, a custom op whose eager kernel is the
-grid_sample implementation of :mod:`spk2img.training.deform_conv` (so the traced model computes
+grid_sample implementation of :mod:`spk2img.model.deform_conv` (so the traced model computes
 the same thing) and which :data:`DEFORM_CONV_TRANSLATION` turns into one ``DeformConv`` node.
 
 Semantics agree (SPEC §4; ONNX ``DeformConv`` reference implementation): the offset input is
@@ -21,8 +21,8 @@ from unittest import mock
 import torch
 from onnxscript import opset19
 
-from spk2img.training import deform_conv
-from spk2img.training.deform_conv import modulated_deform_conv2d as grid_sample_deform_conv2d
+from spk2img.model import deform_conv
+from spk2img.model.deform_conv import modulated_deform_conv2d as grid_sample_deform_conv2d
 
 DEFORM_CONV_OPSET = 19
 
@@ -38,7 +38,7 @@ def modulated_deform_conv2d_op(
     padding: int = 1,
     dilation: int = 1,
 ) -> torch.Tensor:
-    """:func:`spk2img.training.deform_conv.modulated_deform_conv2d` as one opaque op (stride 1):
+    """:func:`spk2img.model.deform_conv.modulated_deform_conv2d` as one opaque op (stride 1):
     ``x`` ``(b, c_in, h, w)``, ``offset`` ``(b, groups * 2 * K, h_out, w_out)`` in pixels,
     ``mask`` ``(b, groups * K, h_out, w_out)`` in [0, 1], ``weight`` ``(c_out, c_in, kh, kw)``,
     ``bias`` ``(c_out,)`` -> ``(b, c_out, h_out, w_out)``."""
@@ -73,7 +73,7 @@ DEFORM_CONV_TRANSLATION = {torch.ops.spk2img.modulated_deform_conv2d.default: de
 
 @contextmanager
 def deform_conv_as_custom_op() -> Iterator[None]:
-    """Route :class:`~spk2img.training.deform_conv.ModulatedDeformConv2d` through the custom op
+    """Route :class:`~spk2img.model.deform_conv.ModulatedDeformConv2d` through the custom op
     (by swapping the function its ``forward`` calls) for as long as the context lasts."""
     with mock.patch.object(deform_conv, "modulated_deform_conv2d", modulated_deform_conv2d_op):
         yield

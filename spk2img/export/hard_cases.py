@@ -15,12 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from spk2img.core.evaluation import validation_set
 from spk2img.core.scenes import Motion, MovingImage, random_scene
 from spk2img.core.simulator import SensorConfig, simulate
 from spk2img.core.windows import NET_WINDOW
-from spk2img.training.deform_conv import ModulatedDeformConv2d
-from spk2img.training.network import Spk2ImgNet
-from spk2img.training.validation import validation_set
+from spk2img.model.deform_conv import ModulatedDeformConv2d
+from spk2img.model.network import Spk2ImgNet
 
 HARD_CASE_SEED = 271_828  # disjoint from training (< 10**6 but never used there) and validation
 CASE_HEIGHT, CASE_WIDTH = 48, 64  # size of the content hard cases

@@ -29,10 +29,10 @@ import torch
 
 from spk2img import __version__
 from spk2img.core.light import SPIKE_RATE
+from spk2img.core.provenance import git_commit
 from spk2img.core.windows import NET_WINDOW
-from spk2img.training.checkpoint import config_to_dict
-from spk2img.training.network import Spk2ImgNet
-from spk2img.training.train import git_commit
+from spk2img.model.checkpoint import config_to_dict
+from spk2img.model.network import Spk2ImgNet
 
 UNKNOWN = "unknown"
 

@@ -2,7 +2,7 @@
 
 The graph reads ``spikes`` ``(B, 41, H, W)`` float32 0/1 and writes ``image`` ``(B, 1, H, W)``,
 linear intensity clipped to [0, 1] (SPEC §2). Any ``H`` and ``W`` work: the network pads to its
-pyramid's multiple and crops back inside the graph (:func:`spk2img.training.network.
+pyramid's multiple and crops back inside the graph (:func:`spk2img.model.network.
 pad_to_multiple`), with pad amounts computed from the input's shape.
 
 The network is traced once, at a small example shape, by ``torch.onnx.export(dynamo=True)``
@@ -26,10 +26,10 @@ from torch import nn
 
 from spk2img.core.errors import InputError
 from spk2img.core.windows import NET_WINDOW
-from spk2img.training.checkpoint import config_from_dict, load_checkpoint
-from spk2img.training.config import MEMBERS
-from spk2img.training.deform_conv import ModulatedDeformConv2d
-from spk2img.training.network import Spk2ImgNet, build_model
+from spk2img.model.checkpoint import config_from_dict, load_checkpoint
+from spk2img.model.config import MEMBERS
+from spk2img.model.deform_conv import ModulatedDeformConv2d
+from spk2img.model.network import Spk2ImgNet, build_model
 
 from .deform_conv_graph import (
     DEFORM_CONV_OPSET,

@@ -26,10 +26,10 @@ from onnxruntime.quantization import (
 from onnxruntime.transformers.float16 import convert_float_to_float16
 from onnxruntime.transformers.onnx_model import OnnxModel as TransformersOnnxModel
 
+from spk2img.core.evaluation import validation_set
 from spk2img.core.metrics import psnr
 from spk2img.core.onnx_backend import OnnxModel
 from spk2img.core.simulator import training_sample
-from spk2img.training.validation import validation_set
 
 from .onnx_export import INPUT_NAME, check_graph, operator_counts
 

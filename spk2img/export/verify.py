@@ -30,7 +30,7 @@ import torch
 from spk2img.core.errors import InputError
 from spk2img.core.metrics import psnr
 from spk2img.core.windows import NET_WINDOW
-from spk2img.training.network import Spk2ImgNet
+from spk2img.model.network import Spk2ImgNet
 
 from .block_graphs import stream_block_graphs, whole_windows
 from .hard_cases import Case, far_offset_copy

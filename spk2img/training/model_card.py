@@ -10,12 +10,7 @@ import argparse
 import json
 from pathlib import Path
 
-from spk2img.core.onnx_backend import OnnxModel
-
-from .checkpoint import config_from_dict, load_checkpoint
-from .complexity import count_macs, count_parameters
-from .network import Spk2ImgNet
-from .validation import (
+from spk2img.core.evaluation import (
     BRIGHTNESS,
     MOTIONS,
     SENSORS,
@@ -25,6 +20,10 @@ from .validation import (
     score,
     validation_set,
 )
+from spk2img.core.onnx_backend import OnnxModel
+from spk2img.model.checkpoint import config_from_dict, load_checkpoint
+from spk2img.model.complexity import count_macs, count_parameters
+from spk2img.model.network import Spk2ImgNet
 
 CLASSES = [f"psnr_{c}" for c in (*MOTIONS, *BRIGHTNESS, *SENSORS)]
 

@@ -8,7 +8,6 @@ import dataclasses
 import json
 import math
 import os
-import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -20,12 +19,14 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from .checkpoint import config_to_dict, load_checkpoint, save_checkpoint
-from .config import get_config
+from spk2img.core.evaluation import baseline_scores, network_scorer, score, validation_set
+from spk2img.core.provenance import git_commit
+from spk2img.model.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
+from spk2img.model.config import get_config
+from spk2img.model.network import Spk2ImgNet
+
 from .data import SimulatedBatches
 from .loss import hierarchical_l1
-from .network import Spk2ImgNet
-from .validation import baseline_scores, network_scorer, score, validation_set
 
 
 @dataclass
@@ -181,21 +182,6 @@ def train(cfg: TrainConfig) -> dict:
             log.write(kind="replicas", world_size=run.world, max_abs_diff=diff)
     run.close()
     return val
-
-
-def git_commit() -> str:
-    """``git rev-parse HEAD`` of the tree this package lives in, or ``unknown``."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=Path(__file__).parent,
-            capture_output=True,
-            text=True,
-            timeout=10,
-        )
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
 
 
 def validate(model: Spk2ImgNet, scenes) -> dict:

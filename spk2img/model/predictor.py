@@ -7,7 +7,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..core.block_model import code_names, head_inputs
+from spk2img.core.block_model import code_names, head_inputs
+
 from .checkpoint import load_model
 from .network import pad_to_multiple, to_intensity
 

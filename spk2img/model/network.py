@@ -7,7 +7,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ..core.light import SPIKE_RATE
+from spk2img.core.light import SPIKE_RATE
+
 from .alignment import FeaturePyramid, PCDAlignment
 from .config import Spk2ImgNetConfig, get_config
 from .features import FeatureExtractor
@@ -28,7 +29,7 @@ class Spk2ImgNet(nn.Module):
     """Spike window -> intensity image, plus SALI's intermediate estimates.
 
     Args:
-        config: the member's shape; :data:`~spk2img.training.config.PAPER` is the published net.
+        config: the member's shape; :data:`~spk2img.model.config.PAPER` is the published net.
     """
 
     def __init__(self, config: Spk2ImgNetConfig) -> None:
@@ -127,7 +128,7 @@ class Spk2ImgNet(nn.Module):
             pyramid: per level, ``(b, blocks, c, h_l, w_l)``: every block's features in
                 temporal order.
             neighbour_terms: per level, ``(b, blocks - 1, c, h_l, w_l)``: the neighbours' terms
-                (:meth:`~spk2img.training.alignment.PCDAlignment.neighbour_terms`), in order.
+                (:meth:`~spk2img.model.alignment.PCDAlignment.neighbour_terms`), in order.
             key_terms: per level, ``(b, c, h_l, w_l)``: the key's terms.
 
         Returns:
