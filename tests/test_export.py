@@ -78,8 +78,9 @@ def test_graph_contract(tiny_export):
 
 def _io_dims(model: onnx.ModelProto) -> dict[str, list[str | int]]:
     values = [*model.graph.input, *model.graph.output]
-    return {v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]
-            for v in values}  # fmt: skip
+    return {
+        v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim] for v in values
+    }
 
 
 def test_block_graph_contract(tiny_export):
@@ -90,14 +91,17 @@ def test_block_graph_contract(tiny_export):
     io = {part: _io_dims(model) for part, model in parts.items()}
     assert io["encoder"] == {
         "block": ["batch", 13, "height", "width"],
-        **{f"{r}_l{i}": ["batch", 12, f"h_l{i}", f"w_l{i}"] for r in ("feat", "nbr", "key")
-           for i in (1, 2)},
-    }  # fmt: skip
+        **{
+            f"{r}_l{i}": ["batch", 12, f"h_l{i}", f"w_l{i}"]
+            for r in ("feat", "nbr", "key")
+            for i in (1, 2)
+        },
+    }
     assert io["head"] == {
         **{f"feat_l{i}": ["batch", 5, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
         **{f"nbr_l{i}": ["batch", 4, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
         **{f"key_l{i}": ["batch", 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
-        "image": ["batch", 1, "h_l1", "w_l1"],
+        "image": ["batch", 1, "padded_height", "padded_width"],
     }
     for part, model in parts.items():
         meta = {p.key: p.value for p in model.metadata_props}
@@ -136,8 +140,15 @@ def test_verify_cli_quick_passes_on_hard_cases(tiny_export, tiny_checkpoint, tmp
     report = json.loads(out.read_text())
     assert report["passed"] and report["atol"] == ATOL
     cases = {r["case"] for r in report["results"]}
-    for name in ("dark (all 0)", "saturated (all 1)", "single spike", "checkerboard flicker",
-                 "far offsets (1e5 px)", "scene 17x23", "scene 250x250"):  # fmt: skip
+    for name in (
+        "dark (all 0)",
+        "saturated (all 1)",
+        "single spike",
+        "checkerboard flicker",
+        "far offsets (1e5 px)",
+        "scene 17x23",
+        "scene 250x250",
+    ):
         assert name in cases
     assert {r["threads"] for r in report["results"]} == {1, 2}
     for r in report["results"]:

@@ -10,6 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from spk2img.model.block_split import key_terms, neighbour_terms
 from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
@@ -214,7 +215,7 @@ def test_offset_conv_terms_add_up_to_the_conv_on_the_pair(member):
     c, levels = model.config.channels, model.config.pyramid_levels
     neighbour = [torch.randn(2, c, 16 // 2**i, 24 // 2**i) for i in range(levels)]
     key = [torch.randn(2, c, 16 // 2**i, 24 // 2**i) for i in range(levels)]
-    terms = zip(model.align.neighbour_terms(neighbour), model.align.key_terms(key), strict=True)
+    terms = zip(neighbour_terms(model.align, neighbour), key_terms(model.align, key), strict=True)
     for i, (n_term, k_term) in enumerate(terms, start=1):
         conv = model.align.offset_conv1[f"l{i}"]
         whole = conv(torch.cat([neighbour[i - 1], key[i - 1]], dim=1))

@@ -1,9 +1,9 @@
 """The network in two parts for streams: encode each 13-frame block once, then align and fuse.
 
 A :class:`BlockCodec` turns one block into its *code* (feature pyramid and offset-conv terms,
-:mod:`spk2img.export.block_graphs` has the layout) and five codes into an image.
+:mod:`spk2img.model.block_split` has the layout) and five codes into an image.
 :class:`OnnxBlockCodec` runs the exported encoder and head graphs with onnxruntime (no torch);
-``spk2img.model.predictor.TorchBlockCodec`` runs the same split in PyTorch.
+``spk2img.model.predictor.TorchPredictor`` runs the same split in PyTorch.
 """
 
 from __future__ import annotations
@@ -25,9 +25,13 @@ BlockCode = tuple[np.ndarray, ...]
 """One block's code: :func:`code_names` order, ``(c, h_l, w_l)`` float32 each."""
 
 
+CODE_ROLES = ("feat", "nbr", "key")
+"""A block code's parts: feature pyramid, offset-conv terms as a neighbour and as the key."""
+
+
 def code_names(levels: int) -> list[str]:
     """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``."""
-    return [f"{role}_l{i}" for role in ("feat", "nbr", "key") for i in range(1, levels + 1)]
+    return [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
 
 
 class BlockCodec(Protocol):

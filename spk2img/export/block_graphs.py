@@ -7,8 +7,9 @@ codes of the blocks still needed, instead of re-running SALI and the feature ext
 block of every output.
 
 **Encoder** ``<stem>.encoder.onnx``: input ``block`` ``(B, 13, H, W)`` float32 0/1; outputs, for
-each pyramid level ``l = 1 .. L`` (sizes ``hp / 2**(l-1)``, ``wp / 2**(l-1)`` where ``hp``,
-``wp`` are ``H``, ``W`` padded to ``2**(L-1)``):
+each pyramid level ``l = 1 .. L`` (sizes ``hp / (s * 2**(l-1))``, ``wp / (s * 2**(l-1))`` where
+``s`` is the feature stride and ``hp``, ``wp`` are ``H``, ``W`` padded to ``s * 2**(L-1)``;
+:mod:`spk2img.model.block_split` builds both parts):
 
 - ``feat_l{l}`` ``(B, c, h_l, w_l)``: the block's feature pyramid;
 - ``nbr_l{l}`` and ``key_l{l}`` ``(B, c, h_l, w_l)``: its terms of level ``l``'s first offset
@@ -16,7 +17,8 @@ each pyramid level ``l = 1 .. L`` (sizes ``hp / 2**(l-1)``, ``wp / 2**(l-1)`` wh
 
 **Head** ``<stem>.head.onnx``: inputs ``feat_l{l}`` ``(B, 5, c, h_l, w_l)`` (the five blocks in
 temporal order), ``nbr_l{l}`` ``(B, 4, c, h_l, w_l)`` (the four neighbours in order) and
-``key_l{l}`` ``(B, c, h_l, w_l)`` (the key block's); output ``image`` ``(B, 1, hp, wp)``, linear
+``key_l{l}`` ``(B, c, h_l, w_l)`` (the key block's); output ``image`` ``(B, 1, hp, wp)``
+(dims ``padded_height``, ``padded_width``), linear
 intensity in [0, 1], still padded: crop it to ``H x W``.
 
 Both carry the one-shot graph's metadata (same ``weights_sha256``) plus ``part``
@@ -30,49 +32,19 @@ from pathlib import Path
 import numpy as np
 import onnx
 import torch
-from torch import nn
 from torch.export import Dim
 
 from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths, code_names
 from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.stream import collect, frame_chunks, run_stream
 from spk2img.core.windows import NET_WINDOW, CenterPlan
-from spk2img.model.network import Spk2ImgNet, pad_to_multiple, to_intensity
+from spk2img.model.block_split import AlignFuseHead, BlockEncoder, repeated_code, role_blocks
+from spk2img.model.network import Spk2ImgNet
 
 from .onnx_export import ExportConfig, ExportSource, GraphIO, finish_graph, trace_to_onnx
 
 BLOCK_INPUT = "block"
 IMAGE_OUTPUT = "image"
-
-
-class BlockEncoder(nn.Module):
-    """``(B, 13, H, W)`` spikes -> the flat tuple of one block's codes (module doc)."""
-
-    def __init__(self, model: Spk2ImgNet) -> None:
-        super().__init__()
-        self.model = model
-
-    def forward(self, block: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        pyramid, neighbour_terms, key_terms = self.model.encode(
-            pad_to_multiple(block, self.model.config.size_multiple)
-        )
-        return (*pyramid, *neighbour_terms, *key_terms)
-
-
-class AlignFuseHead(nn.Module):
-    """The five blocks' codes (module doc) -> ``(B, 1, hp, wp)`` linear intensity in [0, 1]."""
-
-    def __init__(self, model: Spk2ImgNet) -> None:
-        super().__init__()
-        self.model = model
-
-    def forward(self, *codes: torch.Tensor) -> torch.Tensor:
-        levels = self.model.config.pyramid_levels
-        pyramid, neighbour_terms, key_terms = (
-            list(codes[i * levels : (i + 1) * levels]) for i in range(3)
-        )
-        pred = self.model.head(pyramid, neighbour_terms, key_terms)
-        return to_intensity(pred, pred.shape[-2], pred.shape[-1], training=False)
 
 
 def export_block_graphs(
@@ -84,11 +56,13 @@ def export_block_graphs(
     cfg = model.config
     levels = cfg.pyramid_levels
     names = code_names(levels)
+    stacked = role_blocks(cfg.num_blocks)  # blocks each role stacks in the head's inputs
     roles = [name.split("_")[0] for name in names]
     paths = block_graph_paths(out)
     # (batch, c, h_l, w_l) dims of each code, named after its level
-    code_dims = {name: ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"]
-                 for name in names}  # fmt: skip
+    code_dims = {
+        name: ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"] for name in names
+    }
 
     block = torch.zeros(
         config.example_batch, cfg.block_frames, config.example_height, config.example_width
@@ -98,17 +72,12 @@ def export_block_graphs(
     encoder = trace_to_onnx(BlockEncoder(model), (block,), encoder_io, config)
     encoder_expected = {BLOCK_INPUT: ["batch", cfg.block_frames, "height", "width"], **code_dims}
     _name_dims(list(encoder.graph.output), encoder_expected)
-    finish_graph(encoder, {**source.metadata, "part": "encoder"}, config, paths["encoder"],
-                 encoder_expected)  # fmt: skip
+    encoder_meta = {**source.metadata, "part": "encoder"}
+    finish_graph(encoder, encoder_meta, config, paths["encoder"], encoder_expected)
 
     # the head takes every block's pyramid, the neighbours' terms and the key's terms
-    stacked = {"feat": cfg.num_blocks, "nbr": cfg.num_blocks - 1, "key": None}
     with torch.no_grad():
-        codes = BlockEncoder(model)(block)
-    examples = tuple(
-        code if stacked[role] is None else code.unsqueeze(1).expand(-1, stacked[role], -1, -1, -1)
-        for code, role in zip(codes, roles, strict=True)
-    )
+        examples = repeated_code(BlockEncoder(model)(block), cfg.num_blocks)
     batch, coarse_h, coarse_w = Dim("batch"), Dim("coarse_height"), Dim("coarse_width")
     shapes = []
     for name, role in zip(names, roles, strict=True):
@@ -120,7 +89,7 @@ def export_block_graphs(
     head_expected = {
         name: [dims[0], *([] if stacked[role] is None else [stacked[role]]), *dims[1:]]
         for (name, dims), role in zip(code_dims.items(), roles, strict=True)
-    } | {IMAGE_OUTPUT: ["batch", 1, "h_l1", "w_l1"]}
+    } | {IMAGE_OUTPUT: ["batch", 1, "padded_height", "padded_width"]}
     _name_dims([*head.graph.input, *head.graph.output], head_expected)
     finish_graph(head, {**source.metadata, "part": "head"}, config, paths["head"], head_expected)
     return paths
@@ -157,8 +126,8 @@ def stream_block_graphs(
     """``(T, H, W)`` spikes streamed at every 7th centre through the block graphs beside
     ``model_path`` (one onnxruntime thread): ``frames (N, H, W)`` and ``centers (N,)``."""
     height, width = spikes.shape[1:]
-    recon = BlockReuseStream(height, width, CenterPlan(NET_WINDOW, stride=7),
-                             OnnxBlockCodec(model_path, threads=1))  # fmt: skip
+    codec = OnnxBlockCodec(model_path, threads=1)
+    recon = BlockReuseStream(height, width, CenterPlan(NET_WINDOW, stride=7), codec)
     return collect(run_stream(recon, frame_chunks(spikes)), height, width)
 
 

@@ -57,11 +57,6 @@ class PCDAlignment(nn.Module):
     and the result is fused with the upsampled level ``l + 1`` result. LeakyReLU 0.1 after every
     conv except the level-1 fusion (as in EDVR).
 
-    The first offset conv of each level is linear in ``[neighbour, key]``, so it is computed as
-    two per-block terms (:meth:`neighbour_terms`, :meth:`key_terms`) that :meth:`forward` adds:
-    a block's terms are computed once, whichever pairs it takes part in (the streaming encoder
-    of :mod:`spk2img.export.block_graphs` computes them with the block's features).
-
     Args:
         channels: feature channels.
         levels: pyramid levels.
@@ -90,42 +85,35 @@ class PCDAlignment(nn.Module):
         self.cas_dcn_pack = ModulatedDeformConv2d(channels, channels, channels, groups)
         self.lrelu = nn.LeakyReLU(0.1)
 
-    def neighbour_terms(self, pyramid: list[torch.Tensor]) -> list[torch.Tensor]:
-        """A block's share of each level's first offset conv as the neighbour: pyramid (level 1
-        first) of ``(b, c, h_l, w_l)`` -> the same shapes (no bias)."""
-        c = pyramid[0].shape[1]
-        return [
-            F.conv2d(feat, self.offset_conv1[f"l{i}"].weight[:, :c], None, padding=1)
-            for i, feat in enumerate(pyramid, start=1)
-        ]
-
-    def key_terms(self, pyramid: list[torch.Tensor]) -> list[torch.Tensor]:
-        """A block's share of each level's first offset conv as the key (with the bias): pyramid
-        of ``(b, c, h_l, w_l)`` -> the same shapes."""
-        c = pyramid[0].shape[1]
-        return [
-            F.conv2d(
-                feat,
-                self.offset_conv1[f"l{i}"].weight[:, c:],
-                self.offset_conv1[f"l{i}"].bias,
-                padding=1,
-            )
-            for i, feat in enumerate(pyramid, start=1)
-        ]
-
-    def forward(
-        self,
-        neighbour: list[torch.Tensor],
-        neighbour_terms: list[torch.Tensor],
-        key_terms: list[torch.Tensor],
-        key_feat: torch.Tensor,
-    ) -> torch.Tensor:
+    def forward(self, neighbour: list[torch.Tensor], key: list[torch.Tensor]) -> torch.Tensor:
         """Align one neighbour per batch item to its key.
 
         Args:
             neighbour: the neighbour's pyramid, level 1 first, ``(b, c, h_l, w_l)`` per level.
-            neighbour_terms: :meth:`neighbour_terms` of ``neighbour``.
-            key_terms: :meth:`key_terms` of the key's pyramid, ``(b, c, h_l, w_l)`` per level.
+            key: the key's pyramid, the same shapes.
+
+        Returns:
+            The aligned neighbour ``(b, c, h, w)``.
+        """
+        first_offsets = [
+            self.offset_conv1[f"l{i}"](torch.cat([nbr, k], dim=1))
+            for i, (nbr, k) in enumerate(zip(neighbour, key, strict=True), start=1)
+        ]
+        return self.align_levels(neighbour, first_offsets, key[0])
+
+    def align_levels(
+        self,
+        neighbour: list[torch.Tensor],
+        first_offsets: list[torch.Tensor],
+        key_feat: torch.Tensor,
+    ) -> torch.Tensor:
+        """The pyramid and the cascade, given each level's first offset conv on
+        ``[neighbour, key]`` (before its LeakyReLU): :meth:`forward` computes it from the pair,
+        :mod:`spk2img.model.block_split` from per-block terms.
+
+        Args:
+            neighbour: the neighbour's pyramid, ``(b, c, h_l, w_l)`` per level, level 1 first.
+            first_offsets: ``offset_conv1`` of each level on ``[neighbour, key]``, same shapes.
             key_feat: the key's level-1 features ``(b, c, h, w)`` (for the cascade).
 
         Returns:
@@ -135,8 +123,7 @@ class PCDAlignment(nn.Module):
         upsampled_feat: torch.Tensor | None = None
         for i in range(self.levels, 0, -1):
             level = f"l{i}"
-            # offset_conv1 on [neighbour, key], from the two blocks' terms
-            offset = self.lrelu(neighbour_terms[i - 1] + key_terms[i - 1])  # (b, c, h_l, w_l)
+            offset = self.lrelu(first_offsets[i - 1])  # (b, c, h_l, w_l)
             if upsampled_offset is None:  # coarsest level
                 offset = self.lrelu(self.offset_conv2[level](offset))
             else:

@@ -15,8 +15,9 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
+from .block_split import AlignFuseHead, BlockEncoder, repeated_code
 from .config import Spk2ImgNetConfig
-from .network import Spk2ImgNet, pad_to_multiple
+from .network import Spk2ImgNet
 
 
 def count_parameters(model: nn.Module) -> int:
@@ -44,22 +45,11 @@ def count_stream_macs(
     each block once, when one new block arrives per output (centres 7 frames apart)."""
     with torch.device("meta"):
         model = Spk2ImgNet(config).eval()
-        block = pad_to_multiple(
-            torch.zeros(1, config.block_frames, height, width), config.size_multiple
-        )
-    codes: list = []
-    encoder = _macs(lambda: codes.extend(model.encode(block)))
-    pyramid, neighbour_terms, key_terms = codes
-
-    def stacked(levels: list[torch.Tensor], blocks: int) -> list[torch.Tensor]:
-        return [level.unsqueeze(1).expand(-1, blocks, -1, -1, -1) for level in levels]
-
-    blocks = config.num_blocks
-    head = _macs(
-        lambda: model.head(
-            stacked(pyramid, blocks), stacked(neighbour_terms, blocks - 1), key_terms
-        )  # fmt: skip
-    )
+        block = torch.zeros(1, config.block_frames, height, width)
+    codes: list[torch.Tensor] = []
+    encoder = _macs(lambda: codes.extend(BlockEncoder(model)(block)))
+    inputs = repeated_code(tuple(codes), config.num_blocks)
+    head = _macs(lambda: AlignFuseHead(model)(*inputs))
     return encoder, head
 
 

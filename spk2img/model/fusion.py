@@ -35,16 +35,19 @@ class ReliabilityMask(nn.Module):
 class ReliabilityFusion(nn.Module):
     """Masks each aligned neighbour by its own :class:`ReliabilityMask` (one per temporal
     position, not shared), concatenates them with the key in temporal order and reconstructs:
-    conv3x3 ``blocks * c -> hidden``, ReLU, conv3x3 ``-> c``, ReLU, conv3x3 ``-> 1``.
+    conv3x3 ``blocks * c -> hidden``, ReLU, conv3x3 ``-> c``, ReLU, conv3x3 ``-> out``.
 
     Args:
         channels: feature channels ``c``.
         blocks: temporal blocks, key included (5 as published).
         mask_hidden: hidden channels of the reliability masks.
         hidden: channels of the first reconstruction conv (192 as published).
+        out_channels: output channels (1 as published; ``s * s`` for a pixel-shuffle head).
     """
 
-    def __init__(self, channels: int, blocks: int, mask_hidden: int, hidden: int) -> None:
+    def __init__(
+        self, channels: int, blocks: int, mask_hidden: int, hidden: int, out_channels: int = 1
+    ) -> None:
         super().__init__()
         self.key_index = blocks // 2
         self.masks = nn.ModuleList(
@@ -55,12 +58,12 @@ class ReliabilityFusion(nn.Module):
             nn.ReLU(),
             nn.Conv2d(hidden, channels, 3, padding=1),
             nn.ReLU(),
-            nn.Conv2d(channels, 1, 3, padding=1),
+            nn.Conv2d(channels, out_channels, 3, padding=1),
         )
 
     def forward(self, aligned: list[torch.Tensor], key: torch.Tensor) -> torch.Tensor:
         """``aligned``: the neighbours in temporal order, ``(b, c, h, w)`` each; ``key``
-        ``(b, c, h, w)`` -> ``(b, 1, h, w)``."""
+        ``(b, c, h, w)`` -> ``(b, out_channels, h, w)``."""
         masked = [mask(feat, key) * feat for mask, feat in zip(self.masks, aligned, strict=True)]
         masked.insert(self.key_index, key)
         return self.reconstruct(torch.cat(masked, dim=1))  # from (b, blocks * c, h, w)

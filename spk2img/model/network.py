@@ -35,20 +35,19 @@ class Spk2ImgNet(nn.Module):
     def __init__(self, config: Spk2ImgNetConfig) -> None:
         super().__init__()
         self.config = config
-        c = config.channels
+        c, stride = config.channels, config.feature_stride
         self.sali = LightInference(
             config.block_frames,
             config.sali_subwindows,
             config.sali_hidden,
             config.sali_attention_hidden,
         )
-        self.features = FeatureExtractor(
-            len(config.sali_subwindows), c, config.residual_blocks, config.convs_per_block
-        )
+        folded = len(config.sali_subwindows) * stride**2  # SALI's estimates, pixel-unshuffled
+        self.features = FeatureExtractor(folded, c, config.residual_blocks, config.convs_per_block)
         self.pyramid = FeaturePyramid(c, config.pyramid_levels)
         self.align = PCDAlignment(c, config.pyramid_levels, config.deformable_groups)
         self.fusion = ReliabilityFusion(
-            c, config.num_blocks, config.reliability_hidden, config.fusion_hidden
+            c, config.num_blocks, config.reliability_hidden, config.fusion_hidden, stride**2
         )
 
     def forward(self, spikes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -82,79 +81,41 @@ class Spk2ImgNet(nn.Module):
         # SALI, features and pyramid, shared by the blocks
         weighted, estimates = self.sali(blocks)  # (b * blocks, n, hp, wp) each
         pyramid = [
-            level.unflatten(0, (-1, cfg.num_blocks))
-            for level in self.pyramid(self.features(weighted))
+            level.unflatten(0, (-1, cfg.num_blocks)) for level in self.block_pyramid(weighted)
         ]  # (b, blocks, c, h_l, w_l) per level
 
-        # the first offset conv's terms: as neighbour for the neighbours, as key for the key
-        neighbours = [_without_key(level, key).flatten(0, 1) for level in pyramid]
-        neighbour_terms = [
-            terms.unflatten(0, (-1, cfg.num_blocks - 1))
-            for terms in self.align.neighbour_terms(neighbours)
-        ]  # (b, neighbours, c, h_l, w_l) per level
-        key_terms = self.align.key_terms([level[:, key] for level in pyramid])
+        # align each neighbour to the key, all neighbours in one batch
+        neighbours = cfg.num_blocks - 1
+        key_pyramid = [level[:, key] for level in pyramid]  # (b, c, h_l, w_l) per level
+        aligned = self.align(
+            [without_key(level, key).flatten(0, 1) for level in pyramid],
+            [per_neighbour(level, neighbours) for level in key_pyramid],
+        ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
 
-        image = to_intensity(self.head(pyramid, neighbour_terms, key_terms), h, w, self.training)
+        # reliability fusion -> 0.6 * I
+        pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0])  # (b, 1, hp, wp)
+        image = to_intensity(pred, h, w, self.training)
         estimates = estimates.unflatten(0, (-1, cfg.num_blocks))[..., :h, :w] / SPIKE_RATE
         return image, estimates
 
-    def encode(
-        self, block: torch.Tensor
-    ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[torch.Tensor]]:
-        """Everything the head needs of one temporal block, for any role it will play.
+    def block_pyramid(self, weighted: torch.Tensor) -> list[torch.Tensor]:
+        """SALI's weighted estimates ``(b, n, hp, wp)`` -> the feature pyramid, level 1 first,
+        ``(b, c, hp / (s * 2**(l-1)), wp / (s * 2**(l-1)))`` with ``s`` the feature stride."""
+        folded = F.pixel_unshuffle(weighted, self.config.feature_stride)
+        return self.pyramid(self.features(folded))
 
-        Args:
-            block: ``(b, block_frames, hp, wp)`` spikes, ``hp`` and ``wp`` multiples of
-                ``config.size_multiple``.
-
-        Returns:
-            ``(pyramid, neighbour_terms, key_terms)``: lists over levels (level 1 first) of
-            ``(b, c, hp / 2**(l-1), wp / 2**(l-1))``: the feature pyramid and the block's terms
-            of the first offset conv as a neighbour and as the key.
-        """
-        weighted, _ = self.sali(block)
-        pyramid = self.pyramid(self.features(weighted))
-        return pyramid, self.align.neighbour_terms(pyramid), self.align.key_terms(pyramid)
-
-    def head(
-        self,
-        pyramid: list[torch.Tensor],
-        neighbour_terms: list[torch.Tensor],
-        key_terms: list[torch.Tensor],
-    ) -> torch.Tensor:
-        """Align the neighbours to the key and fuse: the prediction of ``0.6 * I``.
-
-        Args:
-            pyramid: per level, ``(b, blocks, c, h_l, w_l)``: every block's features in
-                temporal order.
-            neighbour_terms: per level, ``(b, blocks - 1, c, h_l, w_l)``: the neighbours' terms
-                (:meth:`~spk2img.model.alignment.PCDAlignment.neighbour_terms`), in order.
-            key_terms: per level, ``(b, c, h_l, w_l)``: the key's terms.
-
-        Returns:
-            ``(b, 1, hp, wp)``, padded like the input, not scaled or clipped.
-        """
-        cfg = self.config
-        key = cfg.num_blocks // 2
-        neighbours = cfg.num_blocks - 1
-        key_feat = pyramid[0][:, key]  # (b, c, hp, wp)
-
-        def per_neighbour(tensor: torch.Tensor) -> torch.Tensor:  # the key's, once a neighbour
-            return tensor.unsqueeze(1).expand(-1, neighbours, -1, -1, -1).flatten(0, 1)
-
-        # align the neighbours to the key, all neighbours in one batch
-        aligned = self.align(
-            [_without_key(level, key).flatten(0, 1) for level in pyramid],
-            [terms.flatten(0, 1) for terms in neighbour_terms],
-            [per_neighbour(terms) for terms in key_terms],
-            per_neighbour(key_feat),
-        ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, hp, wp)
-
-        # reliability fusion -> 0.6 * I
-        return self.fusion(list(aligned.unbind(1)), key_feat)
+    def fuse(self, aligned: list[torch.Tensor], key_feat: torch.Tensor) -> torch.Tensor:
+        """The aligned neighbours (temporal order) and the key's level-1 features, each
+        ``(b, c, h_f, w_f)`` -> the prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
+        return F.pixel_shuffle(self.fusion(aligned, key_feat), self.config.feature_stride)
 
 
-def _without_key(level: torch.Tensor, key: int) -> torch.Tensor:
+def per_neighbour(tensor: torch.Tensor, neighbours: int) -> torch.Tensor:
+    """The key's ``(b, ...)`` repeated for each of its neighbours: ``(b * neighbours, ...)``."""
+    return tensor.unsqueeze(1).expand(-1, neighbours, *tensor.shape[1:]).flatten(0, 1)
+
+
+def without_key(level: torch.Tensor, key: int) -> torch.Tensor:
     """``(b, blocks, ...)`` -> ``(b, blocks - 1, ...)``: the neighbours, in temporal order."""
     return torch.cat([level[:, :key], level[:, key + 1 :]], dim=1)
 

@@ -9,8 +9,8 @@ import torch
 
 from spk2img.core.block_model import code_names, head_inputs
 
+from .block_split import AlignFuseHead, BlockEncoder
 from .checkpoint import load_model
-from .network import pad_to_multiple, to_intensity
 
 DEFAULT_CHECKPOINT = (
     Path(__file__).resolve().parents[1] / "assets" / "models" / "spk2img-default.pt"
@@ -24,6 +24,7 @@ class TorchPredictor:
 
     def __init__(self, checkpoint: str | Path | None = None, threads: int | None = None):
         self.model = load_model(checkpoint or DEFAULT_CHECKPOINT)
+        self.encoder, self.head_module = BlockEncoder(self.model), AlignFuseHead(self.model)
         cfg = self.model.config
         self.block_frames, self.block_stride = cfg.block_frames, cfg.block_stride
         self.num_blocks = cfg.num_blocks
@@ -39,16 +40,12 @@ class TorchPredictor:
     def encode(self, block: np.ndarray) -> tuple[np.ndarray, ...]:
         """``(13, H, W)`` spikes -> the block's code (:mod:`spk2img.core.block_model`)."""
         spikes = torch.from_numpy(np.ascontiguousarray(block, np.float32))[None]
-        pyramid, nbr, key = self.model.encode(
-            pad_to_multiple(spikes, self.model.config.size_multiple)
-        )
-        return tuple(t[0].numpy() for t in (*pyramid, *nbr, *key))
+        return tuple(t[0].numpy() for t in self.encoder(spikes))
 
     @torch.inference_mode()
     def head(self, codes, height: int, width: int) -> np.ndarray:
         """Five block codes in temporal order -> ``(height, width)`` linear intensity."""
-        levels = self.model.config.pyramid_levels
-        inputs = head_inputs(codes, code_names(levels), self.num_blocks)
-        tensors = [torch.from_numpy(a) for a in inputs.values()]
-        pred = self.model.head(*(tensors[i * levels : (i + 1) * levels] for i in range(3)))
-        return to_intensity(pred, height, width, training=False)[0, 0].numpy()
+        names = code_names(self.model.config.pyramid_levels)
+        inputs = head_inputs(codes, names, self.num_blocks)
+        image = self.head_module(*(torch.from_numpy(inputs[name]) for name in names))
+        return image[0, 0, :height, :width].numpy()
