@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import typing
+from pathlib import Path
 
 import httpx
 import pytest
@@ -12,7 +14,7 @@ from hypothesis import strategies as st
 from service_support import OCTET, stream_bytes
 
 from spk2img.cli import build_parser, main
-from spk2img.cli.serve import FLAGS, settings_from_args
+from spk2img.cli.serve import flag_name, settings_from_args
 from spk2img.core.errors import InputError
 from spk2img.core.methods import method_plan
 from spk2img.service.app import create_app
@@ -22,8 +24,46 @@ from spk2img.service.schemas import ReconstructQuery
 from spk2img.service.settings import ServiceSettings
 
 
-def test_every_setting_has_a_flag():
-    assert [name for name, _, _ in FLAGS] == list(ServiceSettings.model_fields)
+def _sample(name: str, field) -> tuple[str, object]:
+    """A valid value of the setting other than its default: as a flag's text, and as parsed."""
+    kinds = typing.get_args(field.annotation) or (field.annotation,)
+    default = field.get_default(call_default_factory=True)
+    if field.annotation is bool:
+        return str(not default).lower(), not default
+    if typing.get_origin(field.annotation) is typing.Literal:
+        choice = next(value for value in kinds if value != default)
+        return choice, choice
+    if int in kinds:
+        value = default + 1 if default else 3
+        return str(value), value
+    if float in kinds:
+        return str(default * 2), default * 2
+    if Path in kinds:
+        return f"/elsewhere/{name}.onnx", Path(f"/elsewhere/{name}.onnx")
+    assert str in kinds, f"no sample value for setting {name}: {field.annotation}"
+    return "0.0.0.0", "0.0.0.0"
+
+
+def test_every_setting_is_a_flag_that_reaches_the_settings():
+    fields = ServiceSettings.model_fields
+    samples = {name: _sample(name, field) for name, field in fields.items()}
+    argv = ["serve"]
+    for name, (text, _) in samples.items():
+        argv += [flag_name(name), text]
+    chosen = settings_from_args(build_parser().parse_args(argv))
+    assert {name: getattr(chosen, name) for name in fields} == {
+        name: value for name, (_, value) in samples.items()
+    }
+    assert all(
+        value != fields[name].get_default(call_default_factory=True)
+        for name, (_, value) in samples.items()
+    )
+
+
+def test_a_bad_flag_value_is_one_line_and_exit_2(capsys):
+    assert main(["serve", "--port", "eighty"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--port (SPK2IMG_PORT)" in err, err
 
 
 def test_flags_win_over_the_environment(monkeypatch):

@@ -1,9 +1,16 @@
-"""``spk2img serve``: the streaming reconstruction service (docs/service.md)."""
+"""``spk2img serve``: the streaming reconstruction service (docs/service.md).
+
+The flags are built from the fields of :class:`spk2img.service.settings.ServiceSettings`, the
+one declaration of the service's settings: ``--max-body-bytes`` is the field ``max_body_bytes``,
+its help is the field's description. Flags take text and the settings model checks it, so a bad
+value (from a flag or the environment) is one line naming the flag and the variable, exit 2.
+"""
 
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+import typing
+from typing import Any
 
 from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
@@ -11,41 +18,6 @@ from spk2img.core.errors import InputError
 DEFAULT_MODEL_HINT = (
     " (the shipped default model is not installed: pass --model MODEL.onnx or set SPK2IMG_MODEL)"
 )
-LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
-
-
-def _parse_bool(text: str) -> bool:
-    value = text.strip().lower()
-    if value not in ("true", "false", "1", "0", "yes", "no"):
-        raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
-    return value in ("true", "1", "yes")
-
-
-# one flag per field of spk2img.service.settings.ServiceSettings (a test keeps them in step);
-# absent flags leave the environment or the default, so the parser needs no pydantic import
-FLAGS = [
-    ("model", Path, "ONNX model for method net (default: the shipped model)"),
-    ("host", str, "interface to listen on (default 127.0.0.1)"),
-    ("port", int, "TCP port (default 8000)"),
-    ("threads", int, "CPU threads for reconstruction in all (default: the cores available)"),
-    ("workers", int, "reconstruction jobs run at once (default: threads)"),
-    ("max_queue", int, "requests admitted beyond the workers; more get 503 (default 8)"),
-    ("max_body_bytes", int, "upload size limit in bytes (default 256 MiB)"),
-    ("max_frames", int, "spike frames per request (default 20000)"),
-    ("max_pixels", int, "height*width limit (default 262144)"),
-    ("max_window", int, "largest TFP/TFI window (default 401)"),
-    ("max_tfi_pending", int, "TFI centres waiting for a pixel's next spike (default 64)"),
-    ("max_request_seconds", float, "wall time of one request, upload included (default 300)"),
-    ("batch", int, "41-frame windows per model call (default 1)"),
-    (
-        "block_reuse",
-        _parse_bool,
-        "encode each 13-frame block once when centres share blocks, with the encoder and head "
-        "graphs beside the model: true or false (default true)",
-    ),  # fmt: skip
-    ("retry_after_seconds", int, "the Retry-After of a 503 (default 1)"),
-    ("log_level", str, "uvicorn's log level (default info)"),
-]
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -55,13 +27,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Serve POST /v1/reconstruct, GET /v1/models, /healthz, /readyz and /metrics "
         "(docs/service.md). Each flag is also an environment variable SPK2IMG_<NAME>; flags win.",
     )
-    for name, kind, text in FLAGS:
+    try:
+        from spk2img.service.settings import ServiceSettings
+    except ImportError:  # no serve extra: run() names it
+        p.description += " The flags need the serve extra: pip install 'spk2img[serve]'."
+        return
+    for name, field in ServiceSettings.model_fields.items():
         p.add_argument(
-            f"--{name.replace('_', '-')}",
-            type=kind,
-            default=None,
-            choices=LOG_LEVELS if name == "log_level" else None,
-            help=f"{text}; env SPK2IMG_{name.upper()}",
+            flag_name(name),
+            dest=name,
+            default=None,  # absent: the environment or the field's default
+            metavar=_metavar(name, field.annotation),
+            help=_help(name, field).replace("%", "%%"),
         )
 
 
@@ -92,7 +69,11 @@ def settings_from_args(args: argparse.Namespace):
 
     from spk2img.service.settings import ServiceSettings
 
-    given = {name: getattr(args, name) for name, _, _ in FLAGS if getattr(args, name) is not None}
+    given = {
+        name: value
+        for name in ServiceSettings.model_fields
+        if (value := getattr(args, name, None)) is not None
+    }
     try:
         return ServiceSettings(**given)
     except ValidationError as exc:
@@ -100,6 +81,38 @@ def settings_from_args(args: argparse.Namespace):
         raise InputError(f"bad settings: {problems}") from exc
 
 
+def flag_name(name: str) -> str:
+    """The flag of the setting ``name``: ``max_queue`` -> ``--max-queue``."""
+    return "--" + name.replace("_", "-")
+
+
+def env_name(name: str) -> str:
+    """The environment variable of the setting ``name``: ``max_queue`` -> ``SPK2IMG_MAX_QUEUE``."""
+    from spk2img.service.settings import ServiceSettings
+
+    return ServiceSettings.model_config["env_prefix"] + name.upper()
+
+
+def _metavar(name: str, annotation: Any) -> str:
+    """``{a,b}`` for a choice or a bool, else the name in capitals."""
+    choices: tuple = ()
+    if annotation is bool:
+        choices = ("true", "false")
+    elif typing.get_origin(annotation) is typing.Literal:
+        choices = typing.get_args(annotation)
+    return "{" + ",".join(map(str, choices)) + "}" if choices else name.upper()
+
+
+def _help(name: str, field) -> str:
+    """The field's description, its default unless the description says it, and its variable."""
+    text = field.description or name.replace("_", " ")
+    default = field.get_default(call_default_factory=False)
+    if "default" not in text and field.default_factory is None and default is not None:
+        shown = str(default).lower() if isinstance(default, bool) else default
+        text += f" (default {shown})"
+    return f"{text}; env {env_name(name)}"
+
+
 def _setting_problem(error: dict) -> str:
     name = "_".join(str(part) for part in error["loc"])
-    return f"--{name.replace('_', '-')} (SPK2IMG_{name.upper()}): {error['msg']}"
+    return f"{flag_name(name)} ({env_name(name)}): {error['msg']}"

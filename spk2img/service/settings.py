@@ -1,7 +1,9 @@
-"""Service settings: environment variables ``SPK2IMG_<NAME>`` and the flags of ``spk2img serve``.
+"""Service settings, declared once: environment variables ``SPK2IMG_<NAME>`` and the flags of
+``spk2img serve``.
 
 Every field is both: ``max_body_bytes`` is ``SPK2IMG_MAX_BODY_BYTES`` and ``--max-body-bytes``
-(:mod:`spk2img.cli.serve`); flags win over the environment.
+(:mod:`spk2img.cli.serve` builds the flags from the fields: name, type, default and the
+description as help); flags win over the environment. A new field is a new flag.
 """
 
 from __future__ import annotations
@@ -29,11 +31,15 @@ class ServiceSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="SPK2IMG_", extra="ignore")
 
-    model: Path | None = Field(None, description="ONNX model for method 'net' (default: shipped)")
+    model: Path | None = Field(
+        None, description="ONNX model for method net (default: the shipped model)"
+    )
     host: str = Field("127.0.0.1", description="interface to listen on")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
     threads: int = Field(
-        default_factory=available_cores, ge=1, description="CPU threads for reconstruction in all"
+        default_factory=available_cores,
+        ge=1,
+        description="CPU threads for reconstruction in all (default: the cores available)",
     )
     workers: int | None = Field(
         None, ge=1, description="reconstruction jobs run at once (default: threads)"
@@ -41,20 +47,24 @@ class ServiceSettings(BaseSettings):
     max_queue: int = Field(
         8, ge=0, description="requests admitted beyond the workers; more get 503"
     )
-    max_body_bytes: int = Field(256 * 2**20, ge=1, description="upload size limit (bytes)")
+    max_body_bytes: int = Field(256 * 2**20, ge=1, description="upload size limit in bytes")
     max_frames: int = Field(20_000, ge=1, description="spike frames per request")
-    max_pixels: int = Field(512 * 512, ge=1, description="height*width limit (pixels)")
-    max_window: int = Field(401, ge=1, description="largest TFP/TFI window (frames)")
-    max_tfi_pending: int = Field(64, ge=1, description="TFI centres waiting for a later spike")
-    max_request_seconds: float = Field(300.0, gt=0, description="wall time of one request (s)")
+    max_pixels: int = Field(512 * 512, ge=1, description="height*width limit in pixels")
+    max_window: int = Field(401, ge=1, description="largest TFP/TFI window in frames")
+    max_tfi_pending: int = Field(
+        64, ge=1, description="TFI centres waiting for a pixel's next spike"
+    )
+    max_request_seconds: float = Field(
+        300.0, gt=0, description="wall time of one request in seconds, upload included"
+    )
     batch: int = Field(1, ge=1, description="41-frame windows per model call")
     block_reuse: bool = Field(
         True,
         description="encode each 13-frame block once when centres share blocks (stride a "
         "multiple of 7), with the encoder and head graphs beside the model",
     )
-    retry_after_seconds: int = Field(1, ge=0, description="Retry-After of a 503 (s)")
-    log_level: LogLevel = Field("info", description="uvicorn log level")
+    retry_after_seconds: int = Field(1, ge=0, description="the Retry-After of a 503 in seconds")
+    log_level: LogLevel = Field("info", description="uvicorn's log level")
 
     @property
     def model_path(self) -> Path:
