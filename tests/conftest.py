@@ -5,11 +5,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 import pytest  # noqa: E402
 
-SERVICE_LIMITS = (
-    "--threads", "2", "--workers", "2", "--max-queue", "6", "--max-body-bytes", "3000000",
-    "--max-frames", "2000", "--max-pixels", "100000", "--max-window", "101",
-    "--max-tfi-pending", "16", "--max-request-seconds", "60",
-)  # fmt: skip
+SERVICE_LIMITS = tuple(
+    "--threads 2 --workers 2 --max-queue 6 --max-body-bytes 3000000 --max-frames 2000 "
+    "--max-pixels 100000 --max-window 101 --max-tfi-pending 16 --max-request-seconds 60".split()
+)
 """The limits of the shared test service (small, so that the limit tests stay cheap)."""
 
 

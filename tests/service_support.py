@@ -112,8 +112,11 @@ class DuplexClient:
     def start(self, target: str, headers: dict[str, str] | None = None, length: int | None = None):
         """Send the request head: chunked unless ``length`` (a Content-Length) is given."""
         head = [("host", "127.0.0.1"), *(headers if headers is not None else OCTET).items()]
-        head.append(("content-length", str(length)) if length is not None
-                    else ("transfer-encoding", "chunked"))  # fmt: skip
+        head.append(
+            ("content-length", str(length))
+            if length is not None
+            else ("transfer-encoding", "chunked")
+        )
         self._send(h11.Request(method="POST", target=target, headers=head))
 
     def send(self, data: bytes) -> None:

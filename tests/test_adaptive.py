@@ -41,8 +41,10 @@ def test_static_scenes_never_count_as_moving(brightness, sensor):
 
 @pytest.mark.parametrize("sensor", ["ideal", "real"])
 def test_fast_scenes_mostly_move(sensor):
-    shares = [(_change(_window("fast", "normal", sensor, seed)) > MOTION_THRESHOLD).mean()
-              for seed in range(4)]  # fmt: skip
+    shares = [
+        (_change(_window("fast", "normal", sensor, seed)) > MOTION_THRESHOLD).mean()
+        for seed in range(4)
+    ]
     assert np.mean(shares) > 0.5
 
 
@@ -96,11 +98,15 @@ def test_cli_tiers(tmp_path, capsys):
     source = tmp_path / "s.npy"
     np.save(source, spikes)
     out = {}
-    for name, extra in [("fast", ["--quality", "fast"]), ("tfp", ["--method", "tfp"]),
-                        ("balanced", ["--quality", "balanced"])]:  # fmt: skip
+    variants = {
+        "fast": ["--quality", "fast"],
+        "tfp": ["--method", "tfp"],
+        "balanced": ["--quality", "balanced"],
+    }
+    for name, extra in variants.items():
         out[name] = tmp_path / f"{name}.npz"
-        assert main(["reconstruct", str(source), "--out", str(out[name]), "--stride", "9",
-                     "--no-progress", *extra]) == 0  # fmt: skip
+        args = ["reconstruct", str(source), "--out", str(out[name]), "--stride", "9"]
+        assert main([*args, "--no-progress", *extra]) == 0
     frames = {k: np.load(v)["frames"] for k, v in out.items()}
     np.testing.assert_array_equal(frames["fast"], frames["tfp"])  # TFP-41
     np.testing.assert_array_equal(frames["balanced"], frames["tfp"])  # static and bright

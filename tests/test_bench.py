@@ -98,10 +98,22 @@ def test_quick_streaming_section(quick_run):
 def test_quick_markdown_tables(quick_run):
     _, results, text = quick_run
     assert "`spk2img bench --quick" in text and "Machine:" in text
-    for column in ("params", "G MACs/frame", "ms/frame (1 thr)", "ms/frame (2 thr)",
-                   "peak RSS (MiB)", "PSNR (dB)", "SSIM", "max abs err vs torch",
-                   "GFLOP/s (1 thr)", "% of matmul (2 thr)", "service frames/s", "p99 ms",
-                   "overhead (x)", *SCENE_CLASSES):  # fmt: skip
+    for column in (
+        "params",
+        "G MACs/frame",
+        "ms/frame (1 thr)",
+        "ms/frame (2 thr)",
+        "peak RSS (MiB)",
+        "PSNR (dB)",
+        "SSIM",
+        "max abs err vs torch",
+        "GFLOP/s (1 thr)",
+        "% of matmul (2 thr)",
+        "service frames/s",
+        "p99 ms",
+        "overhead (x)",
+        *SCENE_CLASSES,
+    ):
         assert f"| {column} |" in text or f" {column} |" in text, column
     table = text.split("## Speed and error")[1].split("##")[0]
     for row in results["rows"]:
@@ -134,8 +146,10 @@ def test_worker_peak_rss_is_its_own():
     assert float(child.stdout) < peak_rss_mib() - ballast.nbytes / 2**20 / 2
 
 
-@pytest.mark.parametrize("flags", [["--threads", "0"], ["--members", "huge"],
-                                   ["--trained", "nothing"], ["--repeats", "0"]])  # fmt: skip
+@pytest.mark.parametrize(
+    "flags",
+    [["--threads", "0"], ["--members", "huge"], ["--trained", "nothing"], ["--repeats", "0"]],
+)
 def test_bad_options_exit_2(tmp_path, flags, capsys):
     assert main(["bench", "--quick", "--out-dir", str(tmp_path), *flags]) == 2
     assert "error" in capsys.readouterr().err

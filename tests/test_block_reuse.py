@@ -62,8 +62,9 @@ def test_torch_reuse_equals_whole_windows(scene_stream, torch_model, centers, st
 
 def test_codes_held_stay_bounded_on_a_long_stream(torch_model):
     spikes = (np.random.default_rng(1).random((400, 8, 12)) < 0.3).astype(np.uint8)
-    recon = build_reconstructor("net", 8, 12, CenterPlan(41, stride=7), torch_model,
-                                codec=torch_model)  # fmt: skip
+    recon = build_reconstructor(
+        "net", 8, 12, CenterPlan(41, stride=7), torch_model, codec=torch_model
+    )
     held = []
     for chunk in frame_chunks(spikes, 5):
         recon.push(chunk)
@@ -95,8 +96,10 @@ def test_shipped_block_graphs_equal_the_shipped_one_shot_graph(scene_stream):
     model = OnnxModel(threads=1)
     codec = OnnxBlockCodec(threads=1)
     assert codec.metadata["weights_sha256"] == model.metadata["weights_sha256"]
-    assert {codec.metadata["part"], codec.head_session.get_modelmeta().custom_metadata_map[
-        "part"]} == {"encoder", "head"}  # fmt: skip
+    assert {
+        codec.metadata["part"],
+        codec.head_session.get_modelmeta().custom_metadata_map["part"],
+    } == {"encoder", "head"}
     plan = CenterPlan(41, stride=7)
     _, expected, want = _stream(scene_stream, plan, model)
     reuse, frames, got = _stream(scene_stream, plan, model, codec=codec)
@@ -122,8 +125,8 @@ def test_cli_reuse_equals_no_reuse_and_service_equals_cli(tmp_path, scene_stream
     source = tmp_path / "s.npy"
     np.save(source, scene_stream)
     outs = {}
-    for name, extra in [("reuse", []), ("whole", ["--no-block-reuse"]),
-                        ("torch", ["--backend", "torch"])]:  # fmt: skip
+    variants = {"reuse": [], "whole": ["--no-block-reuse"], "torch": ["--backend", "torch"]}
+    for name, extra in variants.items():
         outs[name] = tmp_path / f"{name}.npz"
         args = ["reconstruct", str(source), "--out", str(outs[name]), "--stride", "7"]
         assert main([*args, "--no-progress", "--threads", "1", *extra]) == 0

@@ -54,9 +54,8 @@ def test_dockerfile_runtime_is_slim():
     assert ("USER", "spk2img") in instructions
     health = dict(instructions)["HEALTHCHECK"]
     assert "/healthz" in health
-    assert json.loads(dict(instructions)["CMD"]) == [
-        "spk2img", "serve", "--host", "0.0.0.0", "--port", "8000",
-    ]  # fmt: skip
+    command = json.loads(dict(instructions)["CMD"])
+    assert command == ["spk2img", "serve", "--host", "0.0.0.0", "--port", "8000"]
 
 
 @pytest.mark.slow
@@ -77,8 +76,11 @@ def test_dockerfile_install_serves_without_torch(tmp_path, standin_model):
     python = venv / "bin" / "python"
     install = subprocess.run(
         [str(python), "-m", "pip", "install", "--quiet", *pip_args],
-        cwd=cwd, capture_output=True, text=True, timeout=INSTALL_SECONDS,
-    )  # fmt: skip
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=INSTALL_SECONDS,
+    )
     assert install.returncode == 0, install.stderr[-3000:]
 
     probe = f"import importlib.util as u; print(*(bool(u.find_spec(m)) for m in {MODULES}))"
@@ -89,7 +91,11 @@ def test_dockerfile_install_serves_without_torch(tmp_path, standin_model):
     with run_server(standin_model, program=[str(venv / "bin" / "spk2img")]) as server:
         assert server.get("/healthz").json() == {"status": "ok"}
         _, body = stream_bytes(50, 8, 8)
-        response = httpx.post(f"{server.url}/v1/reconstruct?height=8&width=8&centers=20,29",
-                              content=body, headers=OCTET, timeout=30)  # fmt: skip
+        response = httpx.post(
+            f"{server.url}/v1/reconstruct?height=8&width=8&centers=20,29",
+            content=body,
+            headers=OCTET,
+            timeout=30,
+        )
         frames, done = parse_frames(response.content)
         assert isinstance(done, DoneRecord) and [f.center for f in frames] == [20, 29]

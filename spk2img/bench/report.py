@@ -37,12 +37,17 @@ def write_report(results: dict, out_dir: Path) -> list[Path]:
 
 def markdown(results: dict) -> str:
     """The whole ``bench.md``."""
-    parts = [header(results), speed_table(results), class_table(results),
-             efficiency_table(results), service_table(results),
-             f"![PSNR against time per frame]({PLOT_NAME})\n",
-             "Streams — block-feature reuse against whole windows, and the quality tiers per "
-             "scene class: [bench_streaming.md](bench_streaming.md) (`spk2img bench` writes "
-             "both; `--streaming-only` refreshes that one alone).\n"]  # fmt: skip
+    parts = [
+        header(results),
+        speed_table(results),
+        class_table(results),
+        efficiency_table(results),
+        service_table(results),
+        f"![PSNR against time per frame]({PLOT_NAME})\n",
+        "Streams — block-feature reuse against whole windows, and the quality tiers per "
+        "scene class: [bench_streaming.md](bench_streaming.md) (`spk2img bench` writes "
+        "both; `--streaming-only` refreshes that one alone).\n",
+    ]
     return "\n".join(parts)
 
 
@@ -82,9 +87,17 @@ def header(results: dict) -> str:
 
 def speed_table(results: dict) -> str:
     threads = results["settings"]["threads"]
-    cols = ["method", "backend", "params", "G MACs/frame",
-            *(f"ms/frame ({t} thr)" for t in threads),
-            "peak RSS (MiB)", "PSNR (dB)", "SSIM", "max abs err vs torch"]  # fmt: skip
+    cols = [
+        "method",
+        "backend",
+        "params",
+        "G MACs/frame",
+        *(f"ms/frame ({t} thr)" for t in threads),
+        "peak RSS (MiB)",
+        "PSNR (dB)",
+        "SSIM",
+        "max abs err vs torch",
+    ]
     lines = ["## Speed and error", "", *table_head(cols)]
     failures = []
     for row in results["rows"]:
@@ -96,9 +109,16 @@ def speed_table(results: dict) -> str:
             timings = ["failed"] * len(threads)
         score = [f"{q['psnr']:.2f}", f"{q['ssim']:.4f}"] if q else [unscored(row)] * 2
         err = row.get("max_abs_error")
-        cells = [row["label"], row["backend"], f"{row['params']:,}", gmacs(row, "reference"),
-                 *timings, number(row.get("peak_rss_mib")), *score,
-                 DASH if err is None else f"{err:.2e}"]  # fmt: skip
+        cells = [
+            row["label"],
+            row["backend"],
+            f"{row['params']:,}",
+            gmacs(row, "reference"),
+            *timings,
+            number(row.get("peak_rss_mib")),
+            *score,
+            DASH if err is None else f"{err:.2e}",
+        ]
         lines.append(table_row(cells))
     if failures:
         lines += ["", "Rows that failed:", "", *failures]
@@ -107,8 +127,7 @@ def speed_table(results: dict) -> str:
 
 def class_table(results: dict) -> str:
     names = [n for n in SCENE_CLASSES if n in results["cases"]["classes"]]
-    lines = ["## PSNR (dB) / SSIM per scene class", "",
-             *table_head(["method", "backend", *names])]  # fmt: skip
+    lines = ["## PSNR (dB) / SSIM per scene class", "", *table_head(["method", "backend", *names])]
     for row in results["rows"]:
         if "quality" in row:
             q = row["quality"]["classes"]
@@ -122,12 +141,20 @@ def efficiency_table(results: dict) -> str:
     peak = results["matmul_gflops"]
     s = results["settings"]
     rates = ", ".join(f"{peak[str(t)]:.1f} GFLOP/s at {t} thread(s)" for t in threads)
-    cols = ["method", "backend", *(f"GFLOP/s ({t} thr)" for t in threads),
-            *(f"% of matmul ({t} thr)" for t in threads)]  # fmt: skip
-    lines = ["## Hardware efficiency", "",
-             f"fp32 matrix multiply (PyTorch, 1024x1024, same run): {rates}. A network's rate "
-             f"is 2 x its MACs at {s['height']}x{s['width']} over its median time.", "",
-             *table_head(cols)]  # fmt: skip
+    cols = [
+        "method",
+        "backend",
+        *(f"GFLOP/s ({t} thr)" for t in threads),
+        *(f"% of matmul ({t} thr)" for t in threads),
+    ]
+    lines = [
+        "## Hardware efficiency",
+        "",
+        f"fp32 matrix multiply (PyTorch, 1024x1024, same run): {rates}. A network's rate "
+        f"is 2 x its MACs at {s['height']}x{s['width']} over its median time.",
+        "",
+        *table_head(cols),
+    ]
     for row in results["rows"]:
         if row["kind"] != "net" or row["error"]:
             continue
@@ -145,6 +172,9 @@ def service_table(results: dict) -> str:
         return "\n".join([*lines, "Not measured (`--skip-service`).", ""])
     if "error" in service:
         return "\n".join([*lines, f"Not measured: {service['error']}", ""])
+    latency = ["p50 ms", "p90 ms", "p99 ms"]
+    over_http, in_process = ["service frames/s", *latency], ["in-process frames/s", *latency]
+    cols = ["clients", "requests", *over_http, *in_process, "overhead (x)"]
     lines += [
         f"`spk2img serve --threads {service['threads']}` on 127.0.0.1 serving {service['label']} "
         f"(`{Path(service['model']).name}`). A request uploads one 41-frame window of "
@@ -153,9 +183,8 @@ def service_table(results: dict) -> str:
         "threading (one intra-op thread per job, as many jobs at once as threads). Overhead = "
         "in-process frames/s ÷ service frames/s.",
         "",
-        *table_head(["clients", "requests", "service frames/s", "p50 ms", "p90 ms", "p99 ms",
-                     "in-process frames/s", "p50 ms", "p90 ms", "p99 ms", "overhead (x)"]),
-    ]  # fmt: skip
+        *table_head(cols),
+    ]
     for level in service["levels"]:
         http, local = level["service"], level["in_process"]
         cells = [level["clients"], http["requests"]]
@@ -185,19 +214,25 @@ def pareto_plot(results: dict, path: Path) -> None:
             best = db
     fig, ax = plt.subplots(figsize=(9, 5), dpi=120)
     if len(front) > 1:
-        ax.step(*zip(*front, strict=True), where="post", color="0.6", zorder=1,
-                label="Pareto front")  # fmt: skip
+        ax.step(
+            *zip(*front, strict=True), where="post", color="0.6", zorder=1, label="Pareto front"
+        )
     colours = {}
     for row in scored:
         x, y = row["ms_per_frame"][t], row["quality"]["psnr"]
         if row["kind"] != "net":
             ax.scatter(x, y, color="black", marker="x", zorder=3)
-            ax.annotate(row["label"], (x, y), textcoords="offset points", xytext=(5, 5),
-                        fontsize=8)  # fmt: skip
+            ax.annotate(row["label"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8)
             continue
         colour = colours.setdefault(row["weights"], f"C{len(colours)}")
-        ax.scatter(x, y, color=colour, marker=MARKERS.get(row["backend"], "o"), zorder=3,
-                   label=f"{row['label']}, {row['backend']}")  # fmt: skip
+        ax.scatter(
+            x,
+            y,
+            color=colour,
+            marker=MARKERS.get(row["backend"], "o"),
+            zorder=3,
+            label=f"{row['label']}, {row['backend']}",
+        )
     s = results["settings"]
     ax.set_xscale("log")
     ax.set_xlabel(f"ms per {s['height']}x{s['width']} frame ({t} thread(s), log scale)")

@@ -49,10 +49,17 @@ class Scale:
     """Frames of the stream of the streaming benchmark."""
 
 
-FULL = Scale(*REFERENCE_SIZE, per_class=4, repeats=5, members=("paper", "small", "tiny"),
-             service_requests=24, stream_frames=1000)  # fmt: skip
-QUICK = Scale(64, 96, per_class=2, repeats=3, members=("tiny",), service_requests=8,
-              stream_frames=90)  # fmt: skip
+FULL = Scale(
+    *REFERENCE_SIZE,
+    per_class=4,
+    repeats=5,
+    members=("paper", "small", "tiny"),
+    service_requests=24,
+    stream_frames=1000,
+)
+QUICK = Scale(
+    64, 96, per_class=2, repeats=3, members=("tiny",), service_requests=8, stream_frames=90
+)
 
 
 @dataclass(frozen=True)
@@ -90,14 +97,17 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
     started = datetime.now(UTC)
     with tempfile.TemporaryDirectory(prefix="spk2img-bench-") as tmp:
         work = Path(tmp)
-        log(f"simulating the benchmark set ({len(SCENE_CLASSES) * scale.per_class} windows of "
-            f"{scale.height}x{scale.width})")  # fmt: skip
+        log(
+            f"simulating the benchmark set ({len(SCENE_CLASSES) * scale.per_class} windows of "
+            f"{scale.height}x{scale.width})"
+        )
         cases = benchmark_set(scale.per_class, scale.height, scale.width)
         cases_dir = cases.save_spikes(work / "cases")
         plan = plan_rows(options, cases, work, log)
         log("measuring the fp32 matmul rate")
-        matmul = run_job({"job": "matmul", "threads": list(options.threads),
-                          "repeats": scale.repeats})["gflops"]  # fmt: skip
+        matmul = run_job(
+            {"job": "matmul", "threads": list(options.threads), "repeats": scale.repeats}
+        )["gflops"]
         entries, images = [], {}
         for i, item in enumerate(plan.items):
             if isinstance(item, dict):
@@ -106,8 +116,10 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
             entries.append(measure(item, options, cases_dir, work / f"row{i}.npy"))
             if entries[-1]["error"] is None:
                 images[i] = np.load(work / f"row{i}.npy")
-            log(f"[{i + 1}/{len(plan.items)}] {item.label}, {item.backend}: "
-                f"{progress_text(entries[-1])}")  # fmt: skip
+            log(
+                f"[{i + 1}/{len(plan.items)}] {item.label}, {item.backend}: "
+                f"{progress_text(entries[-1])}"
+            )
         score(entries, plan.items, images, cases)
         sizes = {"reference": REFERENCE_SIZE, "timed": (scale.height, scale.width)}
         costs = {w.name: artifacts.cost(w, sizes) for w in plan.weights}
@@ -122,10 +134,20 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         "command": options.command,
         "date": started.isoformat(timespec="seconds"),
         "machine": machine(),
-        "settings": {"height": scale.height, "width": scale.width, "repeats": scale.repeats,
-                     "threads": list(options.threads), "reference_size": list(REFERENCE_SIZE)},
-        "cases": {"count": len(cases), "classes": list(SCENE_CLASSES), "seed": BENCH_SEED,
-                  "per_class": scale.per_class, "sensors": sorted(set(cases.sensors))},
+        "settings": {
+            "height": scale.height,
+            "width": scale.width,
+            "repeats": scale.repeats,
+            "threads": list(options.threads),
+            "reference_size": list(REFERENCE_SIZE),
+        },
+        "cases": {
+            "count": len(cases),
+            "classes": list(SCENE_CLASSES),
+            "seed": BENCH_SEED,
+            "per_class": scale.per_class,
+            "sensors": sorted(set(cases.sensors)),
+        },
         "networks": [w.describe() for w in plan.weights],
         "shipped_installed": any(w.name == "shipped" for w in plan.weights),
         "matmul_gflops": matmul,
@@ -133,7 +155,7 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         "service": service,
         "streaming": streaming,
         "tiers": tiers,
-    }  # fmt: skip
+    }
 
 
 def run_streaming_only(options: BenchOptions, log: Log) -> dict:
@@ -142,12 +164,19 @@ def run_streaming_only(options: BenchOptions, log: Log) -> dict:
     scale = options.scale
     with tempfile.TemporaryDirectory(prefix="spk2img-bench-") as tmp:
         streaming = streaming_run(options, Path(tmp), log)
-        log(f"simulating the benchmark set ({len(SCENE_CLASSES) * scale.per_class} windows of "
-            f"{scale.height}x{scale.width})")  # fmt: skip
+        log(
+            f"simulating the benchmark set ({len(SCENE_CLASSES) * scale.per_class} windows of "
+            f"{scale.height}x{scale.width})"
+        )
         cases = benchmark_set(scale.per_class, scale.height, scale.width)
         tiers = tiers_run(options, cases, Path(tmp), log)
-    return {"command": options.command, "date": started.isoformat(timespec="seconds"),
-            "machine": machine(), "streaming": streaming, "tiers": tiers}  # fmt: skip
+    return {
+        "command": options.command,
+        "date": started.isoformat(timespec="seconds"),
+        "machine": machine(),
+        "streaming": streaming,
+        "tiers": tiers,
+    }
 
 
 def tiers_run(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> dict:
@@ -165,8 +194,9 @@ def streaming_run(options: BenchOptions, work: Path, log: Log) -> dict:
     if shipped is None:
         return {"error": "the shipped model is not installed"}
     scale = options.scale
-    return stream_benchmark(shipped.onnx, scale.stream_frames, scale.height,
-                            scale.width, options.threads, work, log)  # fmt: skip
+    return stream_benchmark(
+        shipped.onnx, scale.stream_frames, scale.height, scale.width, options.threads, work, log
+    )
 
 
 def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> Plan:
@@ -198,11 +228,24 @@ def measure(row: Row, options: BenchOptions, cases_dir: Path, images: Path) -> d
     """Run ``row`` in a worker that saves its images to ``images``: the row's entry with its
     timings and peak RSS, or its ``error``."""
     scored = not isinstance(row, NetRow) or row.trained
-    spec = {"job": "row", "row": row_to_json(row), "threads": list(options.threads),
-            "repeats": options.scale.repeats, "warmup": 1, "cases": str(cases_dir),
-            "score": scored, "outputs": str(images)}  # fmt: skip
-    entry = {"label": row.label, "kind": row.kind, "backend": row.backend, "scored": scored,
-             "weights": getattr(row, "weights", None), "error": None}  # fmt: skip
+    spec = {
+        "job": "row",
+        "row": row_to_json(row),
+        "threads": list(options.threads),
+        "repeats": options.scale.repeats,
+        "warmup": 1,
+        "cases": str(cases_dir),
+        "score": scored,
+        "outputs": str(images),
+    }
+    entry = {
+        "label": row.label,
+        "kind": row.kind,
+        "backend": row.backend,
+        "scored": scored,
+        "weights": getattr(row, "weights", None),
+        "error": None,
+    }
     try:
         entry.update(run_job(spec, WORKER_TIMEOUT_S))
     except WorkerError as exc:
@@ -213,8 +256,14 @@ def measure(row: Row, options: BenchOptions, cases_dir: Path, images: Path) -> d
 def failed_export(weights: artifacts.Weights, backend: str, reason: str) -> dict:
     """The entry of a row whose ONNX graph could not be made."""
     label = NetRow(weights.name, backend, "", weights.trained).label
-    return {"label": label, "kind": "net", "backend": backend, "scored": weights.trained,
-            "weights": weights.name, "error": f"export failed: {reason}"}  # fmt: skip
+    return {
+        "label": label,
+        "kind": "net",
+        "backend": backend,
+        "scored": weights.trained,
+        "weights": weights.name,
+        "error": f"export failed: {reason}",
+    }
 
 
 def score(
@@ -241,18 +290,25 @@ def load_service(
     """The service load test on the shipped model's graph — or, without one, the first trained
     ONNX grid_sample graph that ran, else the first untrained one."""
     served = [
-        item for item, entry in zip(items, entries, strict=True)
+        item
+        for item, entry in zip(items, entries, strict=True)
         if isinstance(item, NetRow) and item.backend == "onnx" and entry["error"] is None
-    ]  # fmt: skip
+    ]
     served.sort(key=lambda row: (row.weights != "shipped", not row.trained))
     if not served:
         return {"error": "no ONNX graph ran, so there is nothing to serve"}
-    log(f"load-testing the service with {served[0].label} ({', '.join(map(str, SERVICE_LEVELS))} "
-        "concurrent clients)")  # fmt: skip
+    log(
+        f"load-testing the service with {served[0].label} ({', '.join(map(str, SERVICE_LEVELS))} "
+        "concurrent clients)"
+    )
     try:
-        result = service_benchmark(Path(served[0].path), np.array(cases.spikes[0]),
-                                   max(options.threads), SERVICE_LEVELS,
-                                   options.scale.service_requests)  # fmt: skip
+        result = service_benchmark(
+            Path(served[0].path),
+            np.array(cases.spikes[0]),
+            max(options.threads),
+            SERVICE_LEVELS,
+            options.scale.service_requests,
+        )
     except (RuntimeError, OSError) as exc:
         return {"error": f"{type(exc).__name__}: {exc}"}
     return {"label": served[0].label, **result}
@@ -269,17 +325,24 @@ def progress_text(entry: dict) -> str:
 
 def machine() -> dict:
     """CPU model (``/proc/cpuinfo``), cores, memory and software versions of this machine."""
-    info = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-            "memory_gib": None, "python": platform.python_version(),
-            "platform": platform.platform()}  # fmt: skip
+    info = {
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "memory_gib": None,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
     try:
         info["cores_available"] = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         info["cores_available"] = os.cpu_count()
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
-        models = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
-                  if line.startswith("model name")]  # fmt: skip
+        models = [
+            line.split(":", 1)[1].strip()
+            for line in cpuinfo.read_text().splitlines()
+            if line.startswith("model name")
+        ]
         info["cpu"] = models[0] if models else info["cpu"]
     meminfo = Path("/proc/meminfo")
     if meminfo.is_file():

@@ -19,8 +19,10 @@ def quality(images: np.ndarray, cases: BenchSet) -> dict:
     scores = [(psnr(i, t), ssim(i, t)) for i, t in zip(images, cases.truth, strict=True)]
 
     def mean(picked: list[tuple[float, float]]) -> dict:
-        return {"psnr": float(np.mean([p for p, _ in picked])),
-                "ssim": float(np.mean([s for _, s in picked]))}  # fmt: skip
+        return {
+            "psnr": float(np.mean([p for p, _ in picked])),
+            "ssim": float(np.mean([s for _, s in picked])),
+        }
 
     classes = {
         name: mean([s for s, c in zip(scores, cases.classes, strict=True) if c == name])
@@ -39,9 +41,7 @@ def best_tfp_window(cases: BenchSet) -> int:
     """The one TFP window (odd, 3..41) with the highest mean PSNR over the whole set."""
 
     def mean_psnr(window: int) -> float:
-        return float(np.mean([
-            psnr(tfp(spikes, [CENTER], window)[0], truth)
-            for spikes, truth in zip(cases.spikes, cases.truth, strict=True)
-        ]))  # fmt: skip
+        pairs = zip(cases.spikes, cases.truth, strict=True)
+        return float(np.mean([psnr(tfp(s, [CENTER], window)[0], t) for s, t in pairs]))
 
     return max(TFP_WINDOWS, key=mean_psnr)

@@ -45,9 +45,9 @@ def running_service(model: Path, threads: int, env: dict[str, str]) -> Iterator[
     import httpx
 
     port = free_port()
-    cmd = [sys.executable, "-m", "spk2img", "serve", "--model", str(model),
-           "--host", "127.0.0.1", "--port", str(port), "--threads", str(threads),
-           "--log-level", "warning"]  # fmt: skip
+    cmd = [sys.executable, "-m", "spk2img", "serve", "--model", str(model)]
+    cmd += ["--host", "127.0.0.1", "--port", str(port), "--threads", str(threads)]
+    cmd += ["--log-level", "warning"]
     url = f"http://127.0.0.1:{port}"
     with tempfile.TemporaryFile() as log:  # a file, not a pipe: a full pipe would block it
         process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -136,11 +136,17 @@ def service_benchmark(
             service = drive(http_call, clients, requests)
             local = drive(local_call, clients, requests)
             overhead = local["frames_per_s"] / service["frames_per_s"]
-            results.append({"clients": clients, "service": service, "in_process": local,
-                            "overhead": overhead})  # fmt: skip
+            results.append(
+                {"clients": clients, "service": service, "in_process": local, "overhead": overhead}
+            )
     jobs.shutdown()
-    return {"model": str(model), "threads": threads, "height": int(window.shape[1]),
-            "width": int(window.shape[2]), "levels": results}  # fmt: skip
+    return {
+        "model": str(model),
+        "threads": threads,
+        "height": int(window.shape[1]),
+        "width": int(window.shape[2]),
+        "levels": results,
+    }
 
 
 def http_caller(url: str, window: np.ndarray) -> Callable[[], None]:

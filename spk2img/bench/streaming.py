@@ -44,8 +44,9 @@ def stream_benchmark(
 
     rng = np.random.default_rng([BENCH_SEED, 7])
     log(f"simulating a {frames}-frame {height}x{width} stream (fast motion, real-like sensor)")
-    spikes = simulate(random_scene(rng, height, width, "fast", "normal"), frames,
-                      SensorConfig.real(), rng)  # fmt: skip
+    spikes = simulate(
+        random_scene(rng, height, width, "fast", "normal"), frames, SensorConfig.real(), rng
+    )
     np.save(work / "stream.npy", spikes)
     metadata = OnnxModel(model, 1).metadata
     config = config_from_dict(json.loads(metadata["config"]))
@@ -55,17 +56,25 @@ def stream_benchmark(
     for t in threads:
         runs, images = {}, {}
         for mode in ("whole", "reuse"):
-            spec = {"job": "stream", "model": str(model), "mode": mode, "threads": [t],
-                    "spikes": str(work / "stream.npy"), "stride": STREAM_STRIDE,
-                    "outputs": str(work / f"{mode}.npy")}  # fmt: skip
+            spec = {
+                "job": "stream",
+                "model": str(model),
+                "mode": mode,
+                "threads": [t],
+                "spikes": str(work / "stream.npy"),
+                "stride": STREAM_STRIDE,
+                "outputs": str(work / f"{mode}.npy"),
+            }
             try:
                 runs[mode] = run_job(spec, WORKER_TIMEOUT_S)
             except WorkerError as exc:
                 runs[mode] = {"error": str(exc)}
                 continue
             images[mode] = np.load(work / f"{mode}.npy")
-            log(f"stream, {mode}, {t} thread(s): {runs[mode]['seconds']:.1f} s for "
-                f"{runs[mode]['outputs']} frames")  # fmt: skip
+            log(
+                f"stream, {mode}, {t} thread(s): {runs[mode]['seconds']:.1f} s for "
+                f"{runs[mode]['outputs']} frames"
+            )
         row = {"threads": t, **{mode: run for mode, run in runs.items()}}
         if len(images) == 2:
             row["ratio"] = runs["reuse"]["seconds"] / runs["whole"]["seconds"]
@@ -92,30 +101,33 @@ def tiers_benchmark(
     median ms per scene class, the balanced tier's network share, and PSNR/SSIM."""
     cases_dir = cases.save_spikes(work / "tier-cases")
     height, width = cases.truth.shape[1:]
-    result: dict = {"threads": list(threads), "size": f"{height}x{width}",
-                    "per_class": len(cases) // len(SCENE_CLASSES), "tiers": {}}  # fmt: skip
+    result: dict = {
+        "threads": list(threads),
+        "size": f"{height}x{width}",
+        "per_class": len(cases) // len(SCENE_CLASSES),
+        "tiers": {},
+    }
     for t in threads:
         out = work / f"tiers-{t}"
         out.mkdir(exist_ok=True)
-        spec = {"job": "tiers", "model": str(model), "threads": [t], "cases": str(cases_dir),
-                "outputs": str(out)}  # fmt: skip
+        spec = {
+            "job": "tiers",
+            "model": str(model),
+            "threads": [t],
+            "cases": str(cases_dir),
+            "outputs": str(out),
+        }
         try:
             run = run_job(spec, WORKER_TIMEOUT_S)
         except WorkerError as exc:
             return {"error": str(exc)}
         for tier, seconds in run["seconds"].items():
             entry = result["tiers"].setdefault(tier, {"ms": {}})
-            entry["ms"][str(t)] = {
-                name: 1000 * float(np.median([s for s, c in zip(seconds, cases.classes,
-                                                                strict=True) if c == name]))
-                for name in SCENE_CLASSES
-            }  # fmt: skip
+            per_class = by_class(seconds, cases.classes)
+            entry["ms"][str(t)] = {name: 1000 * float(np.median(s)) for name, s in per_class}
             entry["quality"] = quality(np.load(out / f"{tier}.npy"), cases)
-        result["balanced_share"] = {
-            name: float(np.mean([s for s, c in zip(run["balanced_share"], cases.classes,
-                                                   strict=True) if c == name]))
-            for name in SCENE_CLASSES
-        }  # fmt: skip
+        shares = by_class(run["balanced_share"], cases.classes)
+        result["balanced_share"] = {name: float(np.mean(s)) for name, s in shares}
         log(
             f"quality tiers, {t} thread(s): "
             + ", ".join(
@@ -123,6 +135,12 @@ def tiers_benchmark(
             )
         )
     return result
+
+
+def by_class(values: list[float], classes: list[str]) -> list[tuple[str, list[float]]]:
+    """``(scene class, the values of its cases)`` for each class of :data:`SCENE_CLASSES`."""
+    pairs = list(zip(values, classes, strict=True))
+    return [(name, [v for v, c in pairs if c == name]) for name in SCENE_CLASSES]
 
 
 def write_streaming_report(results: dict, out_dir: Path) -> list[Path]:
@@ -216,8 +234,7 @@ def tiers_markdown(tiers: dict | None) -> str:
             + f" ms; {q['classes'][name]['psnr']:.2f} / {q['classes'][name]['ssim']:.3f}"
             for name in classes
         ]
-        lines.append(f"| {tier} | " + " | ".join(cells) + f" | {q['psnr']:.2f} / "
-                     f"{q['ssim']:.3f} |")  # fmt: skip
+        lines.append(f"| {tier} | " + " | ".join(cells) + f" | {q['psnr']:.2f} / {q['ssim']:.3f} |")
     share = tiers["balanced_share"]
     lines += [
         "",

@@ -102,15 +102,20 @@ def measure_stream(spec: dict) -> dict:
     else:
         code = codec.encode(np.zeros((codec.block_frames, height, width), np.float32))
         codec.head([code] * codec.num_blocks, height, width)
-    recon = build_reconstructor("net", height, width, CenterPlan(41, stride=spec["stride"]),
-                                model, codec=codec)  # fmt: skip
+    recon = build_reconstructor(
+        "net", height, width, CenterPlan(41, stride=spec["stride"]), model, codec=codec
+    )
     start = time.perf_counter()
     frames, centers = collect(run_stream(recon, frame_chunks(spikes)), height, width)
     seconds = time.perf_counter() - start
     np.save(spec["outputs"], frames)
-    return {"seconds": seconds, "outputs": len(centers), "reconstructor": type(recon).__name__,
-            "blocks_encoded": getattr(recon, "blocks_encoded", None),
-            "peak_rss_mib": peak_rss_mib()}  # fmt: skip
+    return {
+        "seconds": seconds,
+        "outputs": len(centers),
+        "reconstructor": type(recon).__name__,
+        "blocks_encoded": getattr(recon, "blocks_encoded", None),
+        "peak_rss_mib": peak_rss_mib(),
+    }
 
 
 def measure_tiers(spec: dict) -> dict:
@@ -148,8 +153,12 @@ def measure_tiers(spec: dict) -> dict:
     return {"seconds": seconds, "balanced_share": shares, "peak_rss_mib": peak_rss_mib()}
 
 
-JOBS = {"row": measure_row, "matmul": measure_matmul, "stream": measure_stream,
-        "tiers": measure_tiers}  # fmt: skip
+JOBS = {
+    "row": measure_row,
+    "matmul": measure_matmul,
+    "stream": measure_stream,
+    "tiers": measure_tiers,
+}
 
 
 class WorkerError(RuntimeError):

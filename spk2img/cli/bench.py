@@ -22,24 +22,37 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "bench.json and images/pareto.png into --out-dir. Needs the training, export and serve "
         "extras and matplotlib. Run it on an otherwise idle machine.",
     )
-    p.add_argument("--quick", action="store_true",
-                   help="CI smoke run: 64x96 frames, 3 repeats, the tiny member only, a short "
-                   "service run (under 2 minutes on 2 cores)")  # fmt: skip
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="CI smoke run: 64x96 frames, 3 repeats, the tiny member only, a short "
+        "service run (under 2 minutes on 2 cores)",
+    )
     p.add_argument("--out-dir", type=Path, default=Path("docs"), help="default: docs")
     p.add_argument("--threads", default="1,2", help="thread counts to time, e.g. 1,2 (default)")
     p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 3)")
-    p.add_argument("--members",
-                   help="family members with random weights (default paper,small,tiny; "
-                   "--quick: tiny)")  # fmt: skip
-    p.add_argument("--trained", action="append", default=[], metavar="NAME=CHECKPOINT",
-                   help="also benchmark and score a trained checkpoint (repeatable)")  # fmt: skip
+    p.add_argument(
+        "--members",
+        help="family members with random weights (default paper,small,tiny; --quick: tiny)",
+    )
+    p.add_argument(
+        "--trained",
+        action="append",
+        default=[],
+        metavar="NAME=CHECKPOINT",
+        help="also benchmark and score a trained checkpoint (repeatable)",
+    )
     p.add_argument("--skip-service", action="store_true", help="skip the HTTP load test")
     sections = p.add_mutually_exclusive_group()
-    sections.add_argument("--skip-streaming", action="store_true",
-                          help="skip the streaming benchmark (block reuse)")  # fmt: skip
-    sections.add_argument("--streaming-only", action="store_true",
-                          help="run only the streaming benchmark: bench_streaming.md and .json "
-                          "(the other files are left as they are)")  # fmt: skip
+    sections.add_argument(
+        "--skip-streaming", action="store_true", help="skip the streaming benchmark (block reuse)"
+    )
+    sections.add_argument(
+        "--streaming-only",
+        action="store_true",
+        help="run only the streaming benchmark: bench_streaming.md and .json "
+        "(the other files are left as they are)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -92,15 +105,22 @@ def bench_options(args: argparse.Namespace):
     names = [*members, "shipped", *(name for name, _ in trained)]
     if len(set(names)) < len(names):
         raise InputError("--trained names must be unique and differ from the members and 'shipped'")
-    command = ["spk2img bench", "--quick" if args.quick else "", f"--out-dir {args.out_dir}",
-               f"--threads {','.join(map(str, threads))}"]  # fmt: skip
+    command = [
+        "spk2img bench",
+        "--quick" if args.quick else "",
+        f"--out-dir {args.out_dir}",
+        f"--threads {','.join(map(str, threads))}",
+    ]
     if args.streaming_only:  # the rows' options do not apply
         command.append("--streaming-only")
     else:
-        command += [f"--repeats {repeats}", f"--members {','.join(members)}",
-                    *(f"--trained {n}={p}" for n, p in trained),
-                    "--skip-service" if args.skip_service else "",
-                    "--skip-streaming" if args.skip_streaming else ""]  # fmt: skip
+        command += [
+            f"--repeats {repeats}",
+            f"--members {','.join(members)}",
+            *(f"--trained {n}={p}" for n, p in trained),
+            "--skip-service" if args.skip_service else "",
+            "--skip-streaming" if args.skip_streaming else "",
+        ]
     return BenchOptions(
         replace(scale, repeats=repeats, members=members),
         threads,

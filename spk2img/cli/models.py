@@ -33,9 +33,12 @@ def run(args: argparse.Namespace) -> int:
             params = count_parameters(build_model(config))
         macs = count_macs(config, args.height, args.width)
         reuse = sum(count_stream_macs(config, args.height, args.width))
-        print(f"{name:<8} {params:>12,} {macs / 1e9:>18.1f} {reuse / 1e9:>14.1f} "
-              f"{reuse / macs:>6.2f}")  # fmt: skip
+        print(
+            f"{name:<8} {params:>12,} {macs / 1e9:>18.1f} {reuse / 1e9:>14.1f} {reuse / macs:>6.2f}"
+        )
     print("MACs count weight multiply-accumulates of the convolutions; GFLOPs = 2 x G MACs.")
-    print("block reuse: G MACs per output of a stream with centres 7 frames apart that encodes "
-          "each 13-frame block once (one block encoded + align and fuse per output).")  # fmt: skip
+    print(
+        "block reuse: G MACs per output of a stream with centres 7 frames apart that encodes "
+        "each 13-frame block once (one block encoded + align and fuse per output)."
+    )
     return 0

@@ -81,10 +81,15 @@ def run(args: argparse.Namespace) -> int:
     if all(path.is_file() for path in block_graph_paths(args.model).values()):
         sizes = [(CASE_HEIGHT, CASE_WIDTH)] + ([] if args.quick else [(250, 400)])
         streamed = [
-            verify_block_graphs(args.model, model, hard_cases.fast_stream(h, w),
-                                f"block graphs, stream {h}x{w}", atol)
+            verify_block_graphs(
+                args.model,
+                model,
+                hard_cases.fast_stream(h, w),
+                f"block graphs, stream {h}x{w}",
+                atol,
+            )
             for h, w in sizes
-        ]  # fmt: skip
+        ]
         for result in streamed:
             progress(result)
         report = VerifyReport(report.model, report.atol, report.results + streamed)

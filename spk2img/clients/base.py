@@ -68,8 +68,7 @@ class ClientBase:
         quality: Quality = "best",
     ) -> Exchange:
         """A fresh exchange (one per attempt) for reconstructing ``upload``."""
-        params = reconstruct_params(upload, centers, stride, method, window, format, gamma,
-                                    quality)  # fmt: skip
+        params = reconstruct_params(upload, centers, stride, method, window, format, gamma, quality)
         return Exchange(self.service, self.service.target("/v1/reconstruct", params), upload.nbytes)
 
     def _stream_retry_delay(

@@ -59,8 +59,7 @@ class BlockReuseStream(WindowedReconstructor):
             self.blocks_encoded += 1
 
     def _due(self, k: int) -> list[Frame]:
-        image = self.codec.head([self._codes[k + s] for s in self.starts], self.height,
-                                self.width)  # fmt: skip
+        image = self.codec.head([self._codes[k + s] for s in self.starts], self.height, self.width)
         for start in [s for s in self._codes if not self._needed_after(s, k)]:
             del self._codes[start]
         return [(k, image)]

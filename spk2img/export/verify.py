@@ -109,8 +109,11 @@ def compare_outputs(reference: np.ndarray, candidate: np.ndarray) -> dict[str, f
     diff = np.abs(candidate.astype(np.float64) - reference.astype(np.float64))
     if nonfinite:
         return {
-            "max_abs": math.inf, "max_rel": math.inf, "psnr_db": -math.inf, "nonfinite": nonfinite
-        }  # fmt: skip
+            "max_abs": math.inf,
+            "max_rel": math.inf,
+            "psnr_db": -math.inf,
+            "nonfinite": nonfinite,
+        }
     return {
         "max_abs": float(diff.max()),
         "max_rel": float((diff / np.maximum(np.abs(reference), REL_FLOOR)).max()),
@@ -184,9 +187,14 @@ def verify_onnx(
                 scores = compare_outputs(reference, output)
                 ok = scores["max_abs"] <= atol and scores["nonfinite"] == 0
                 result = CaseResult(
-                    case.name, case.spikes.shape, threads, **scores, torch_s=torch_s,
-                    onnx_s=onnx_s, passed=ok,
-                )  # fmt: skip
+                    case.name,
+                    case.spikes.shape,
+                    threads,
+                    **scores,
+                    torch_s=torch_s,
+                    onnx_s=onnx_s,
+                    passed=ok,
+                )
                 results.append(result)
                 if progress:
                     progress(result)

@@ -17,34 +17,47 @@ class ServiceMetrics:
     def __init__(self):
         self.registry = CollectorRegistry()
         self.requests = Counter(
-            "spk2img_http_requests", "HTTP requests answered",
-            ("method", "path", "status"), registry=self.registry,
-        )  # fmt: skip
+            "spk2img_http_requests",
+            "HTTP requests answered",
+            ("method", "path", "status"),
+            registry=self.registry,
+        )
         self.latency = Histogram(
-            "spk2img_http_request_duration_seconds", "Wall time of a request, upload included",
-            ("method", "path"), buckets=LATENCY_BUCKETS, registry=self.registry,
-        )  # fmt: skip
+            "spk2img_http_request_duration_seconds",
+            "Wall time of a request, upload included",
+            ("method", "path"),
+            buckets=LATENCY_BUCKETS,
+            registry=self.registry,
+        )
         self.spike_frames = Counter(
-            "spk2img_spike_frames_received", "Spike frames decoded from uploads",
-            ("method",), registry=self.registry,
-        )  # fmt: skip
+            "spk2img_spike_frames_received",
+            "Spike frames decoded from uploads",
+            ("method",),
+            registry=self.registry,
+        )
         self.frames = Counter(
-            "spk2img_frames_sent", "Reconstructed frames sent",
-            ("method", "format"), registry=self.registry,
-        )  # fmt: skip
+            "spk2img_frames_sent",
+            "Reconstructed frames sent",
+            ("method", "format"),
+            registry=self.registry,
+        )
         self.errors = Counter(
-            "spk2img_errors", "Errors: http (an error response), in_band (an ERRO record), "
+            "spk2img_errors",
+            "Errors: http (an error response), in_band (an ERRO record), "
             "disconnect (the client left mid-request)",
-            ("status", "kind"), registry=self.registry,
-        )  # fmt: skip
+            ("status", "kind"),
+            registry=self.registry,
+        )
         self.queue_depth = Gauge(
-            "spk2img_inference_queue_depth", "Reconstruction jobs submitted and not finished",
+            "spk2img_inference_queue_depth",
+            "Reconstruction jobs submitted and not finished",
             registry=self.registry,
-        )  # fmt: skip
+        )
         self.admitted = Gauge(
-            "spk2img_admitted_requests", "Reconstruction requests holding an admission",
+            "spk2img_admitted_requests",
+            "Reconstruction requests holding an admission",
             registry=self.registry,
-        )  # fmt: skip
+        )
 
     def watch_pool(self, jobs: Callable[[], int], admitted: Callable[[], int]) -> None:
         """Read the queue depth and admissions from the pool at each scrape."""
