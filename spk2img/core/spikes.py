@@ -7,7 +7,6 @@ first. In memory a stream is ``(T, H, W) uint8`` of 0/1, upright, time first.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -203,11 +202,6 @@ class SpikeDecoder:
         self._pending = bytearray()
         self.frames_decoded = 0
 
-    @property
-    def pending_bytes(self) -> int:
-        """Bytes received that do not yet make a whole frame."""
-        return len(self._pending)
-
     def feed(self, chunk: bytes | bytearray | memoryview) -> np.ndarray:
         """Add ``chunk``; return the frames it completed as ``(n, H, W) uint8`` (n may be 0)."""
         self._pending += chunk
@@ -219,14 +213,6 @@ class SpikeDecoder:
         del self._pending[:cut]
         self.frames_decoded += n_whole
         return frames
-
-    def iter_feed(self, chunks: Iterator[bytes]) -> Iterator[np.ndarray]:
-        """Feed every chunk and yield the non-empty frame batches; check the end with finish()."""
-        for chunk in chunks:
-            frames = self.feed(chunk)
-            if len(frames):
-                yield frames
-        self.finish()
 
     def finish(self) -> None:
         """Declare the end of the stream; raise if it ended mid-frame or held no frame at all."""
