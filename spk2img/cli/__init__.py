@@ -10,7 +10,17 @@ import sys
 from spk2img import __version__
 from spk2img.core.errors import InputError
 
-SUBCOMMANDS = ["reconstruct", "simulate", "models", "train", "export", "verify", "serve", "bench"]
+SUBCOMMANDS = [
+    "reconstruct",
+    "simulate",
+    "fit-sensor",
+    "models",
+    "train",
+    "export",
+    "verify",
+    "serve",
+    "bench",
+]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -20,12 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"spk2img {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in SUBCOMMANDS:
-        try:
-            module = importlib.import_module(f"spk2img.cli.{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"spk2img.cli.{name}":
-                raise
-            continue  # not built yet
+        module = importlib.import_module(f"spk2img.cli.{name.replace('-', '_')}")
         module.add_parser(sub)
         sub.choices[name].set_defaults(run=module.run)
     return parser

@@ -17,10 +17,15 @@ import numpy as np
 from tqdm import tqdm
 
 from spk2img.core.scenes import BRIGHTNESSES, MOTIONS, random_scene
+from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.core.simulator import SensorConfig, SpikeSimulator, ground_truth
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, pack_frames
 
-SENSORS = {"ideal": SensorConfig.ideal, "real": SensorConfig.real}
+SENSORS = {
+    "ideal": SensorConfig.ideal,
+    "real": SensorConfig.real,
+    "fitted": lambda: load_preset(FITTED_PRESET),
+}
 CHUNK_FRAMES = 32
 
 
@@ -39,7 +44,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--motion", choices=MOTIONS, help="motion class (default: random)")
     p.add_argument("--brightness", choices=BRIGHTNESSES, help="brightness class (default: random)")
-    p.add_argument("--sensor", choices=tuple(SENSORS), default="ideal", help="default: ideal")
+    p.add_argument(
+        "--sensor",
+        choices=tuple(SENSORS),
+        default="ideal",
+        help="ideal (noise-free), real (typical noises) or fitted (fitted to a real PKU capture, "
+        "docs/sensor.md); default: ideal",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 

@@ -33,7 +33,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ("lr", float),
         ("warmup-steps", int),
         ("seed", int),
-        ("cache-size", int),
+        ("data-mix", str),
+        ("sensor-preset", str),
+        ("workers", int),
+        ("device", str),
         ("val-every", int),
         ("val-per-class", int),
         ("checkpoint-every", int),
@@ -41,6 +44,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ("log-every", int),
     ]:
         p.add_argument(f"--{name}", type=kind, default=None)
+    p.add_argument(
+        "--data",
+        action="append",
+        metavar="DIR",
+        help="a folder of photographs and clips to train on (repeatable)",
+    )
     p.add_argument("--no-progress", action="store_true")
 
 
@@ -48,6 +57,7 @@ def run(args: argparse.Namespace) -> int:
     with needs_extra("train", "training"):
         config_cls, fields = _fields()
     from spk2img.model.config import MEMBERS
+    from spk2img.training.data import DataMix
     from spk2img.training.train import train
 
     values = {
@@ -55,7 +65,11 @@ def run(args: argparse.Namespace) -> int:
     }
     if args.no_progress:
         values["progress"] = False
-    cfg = config_cls(**values)
+    try:
+        cfg = config_cls(**values)
+        DataMix.parse(cfg.data_mix)
+    except ValueError as exc:
+        raise InputError(str(exc)) from exc
     if cfg.member not in MEMBERS:
         raise InputError(f"unknown member {cfg.member!r}: choose one of {', '.join(MEMBERS)}")
     train(cfg)

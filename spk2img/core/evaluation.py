@@ -20,7 +20,8 @@ VALIDATION_SEED = 987_654_321  # disjoint from training seeds (which are < 10**6
 TEST_SEED = 123_456_789  # the model card's held-out test scenes, used by nothing else
 MOTIONS = ("static", "slow", "fast")
 BRIGHTNESS = ("dim", "normal", "bright")
-SENSORS = ("ideal", "real")  # noise-free integrate-and-fire, or any real-like sensor
+SENSORS = ("ideal", "real", "fitted")
+"""Noise-free integrate-and-fire; any real-like sensor; the preset fitted to a real capture."""
 TFP_WINDOWS = tuple(range(3, 42, 2))
 KEY = 2  # the key block's index among the five ground-truth block centres
 

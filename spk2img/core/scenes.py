@@ -403,6 +403,11 @@ CONTENT_KINDS = {  # name: (probability weight, generator)
 }
 
 
+PROCEDURAL_KINDS = tuple(kind for kind in CONTENT_KINDS if kind != "natural")
+"""The content kinds made by code: what training draws (the sample photograph is evaluation
+content only)."""
+
+
 def tone_map(
     content: np.ndarray, rng: np.random.Generator, brightness: str
 ) -> tuple[np.ndarray, dict]:
@@ -430,9 +435,11 @@ def random_scene(
     width: int,
     motion: str | None = None,
     brightness: str | None = None,
+    kinds: tuple[str, ...] = tuple(CONTENT_KINDS),
 ) -> MovingImage:
-    """A random scene: content kind, motion class (``static``, ``slow`` 0.03-0.3 px/frame,
-    ``fast`` 0.5-3 px/frame, log-uniform) and brightness class (``dim`` mean intensity
+    """A random scene: content kind (among ``kinds``, at their weights), motion class
+    (``static``, ``slow`` 0.03-0.3 px/frame, ``fast`` 0.5-3 px/frame, log-uniform) and
+    brightness class (``dim`` mean intensity
     0.03-0.1, ``normal`` 0.15-0.5, ``bright`` 0.5-0.85), each drawn uniformly unless given."""
     motion = motion or str(rng.choice(MOTIONS))
     brightness = brightness or str(rng.choice(BRIGHTNESSES))
@@ -442,7 +449,7 @@ def random_scene(
     speed = float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) if hi > 0 else 0.0
     # a source 1.5x the output: zoom and flow seldom reach its mirrored border
     sh, sw = int(np.ceil(1.5 * height)) + 2, int(np.ceil(1.5 * width)) + 2
-    kinds = list(CONTENT_KINDS)
+    kinds = list(kinds)
     weights = np.array([CONTENT_KINDS[k][0] for k in kinds])
     content = None
     while content is None:

@@ -73,6 +73,24 @@ class SensorConfig:
             hot_pixel_rate=0.5,
         )
 
+    def jittered(self, rng: np.random.Generator) -> SensorConfig:
+        """This sensor with each noise's strength scaled by a log-uniform factor in [1/2, 2],
+        except the dark current, drawn uniformly in [0, 2 x] its value (a fitted preset holds
+        the middle of what its capture allows, :mod:`spk2img.core.sensor_fit`)."""
+
+        def factor() -> float:
+            return float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
+
+        return SensorConfig(
+            threshold=self.threshold,
+            shot_noise=self.shot_noise,
+            photons_per_threshold=self.photons_per_threshold * factor(),
+            dark_current=float(rng.uniform(0, 2 * self.dark_current)),
+            threshold_mismatch=self.threshold_mismatch * factor(),
+            hot_pixel_fraction=min(1.0, self.hot_pixel_fraction * factor()),
+            hot_pixel_rate=self.hot_pixel_rate * factor(),
+        )
+
     @classmethod
     def random(cls, rng: np.random.Generator) -> SensorConfig:
         """Half the time ideal, else a real-like sensor with each noise's strength drawn around

@@ -1,24 +1,56 @@
-"""Training batches from the project's simulator: 41-frame windows and ground truth at the five
-block centres, with random 90° rotations and flips.
+"""Training batches: 41-frame windows and ground truth at the five block centres, from
+procedural scenes, natural photographs and real clips mixed at set weights, filmed by an ideal
+or a real-like sensor, with random 90° rotations and flips.
 
-Every batch is a pure function of ``(seed, rank, step)``, so a resumed run sees exactly the
-batches it would have seen, and each data-parallel rank sees different ones.
+Every sample is a pure function of ``(seed, rank, step, index in batch)``, so a resumed run sees
+exactly the batches it would have seen, each data-parallel rank sees different ones, and worker
+processes may make them in any order.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+import multiprocessing
+from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
-import torch
-from tqdm import tqdm
 
-from spk2img.core.simulator import training_sample
+from spk2img.core.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, random_scene
+from spk2img.core.simulator import GT_FRAMES, SensorConfig, ground_truth, simulate
+from spk2img.core.windows import NET_WINDOW
+
+from .natural_scenes import MAX_LAYERS, clip_scene, photo_scene
+from .sources import SourceIndex, load_clip, load_photo
+
+KINDS = ("procedural", "photos", "clips")
 
 
-def _sample(seed: int, index: int, patch: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sample ``index`` of stream ``seed``: ``(41, P, P) uint8``, ``(5, P, P) float32``."""
-    return training_sample(np.random.default_rng([seed, index]), patch, patch)
+@dataclass(frozen=True)
+class DataMix:
+    """Shares of the three kinds of training content (they need not sum to 1)."""
+
+    procedural: float = 1.0
+    photos: float = 0.0
+    clips: float = 0.0
+
+    @classmethod
+    def parse(cls, text: str) -> DataMix:
+        """``"photos=0.5,clips=0.3,procedural=0.2"`` -> a mix (missing kinds weigh 0)."""
+        try:
+            pairs = [item.split("=") for item in text.split(",") if item.strip()]
+            weights = {name.strip(): float(value) for name, value in pairs}
+        except ValueError:
+            raise ValueError(f"bad data mix {text!r}: use e.g. photos=0.5,clips=0.3") from None
+        unknown = set(weights) - set(KINDS)
+        if unknown or min(weights.values(), default=0) < 0 or sum(weights.values()) <= 0:
+            raise ValueError(
+                f"bad data mix {text!r}: kinds are {', '.join(KINDS)}, weights >= 0, not all 0"
+            )
+        return cls(**{kind: weights.get(kind, 0.0) for kind in KINDS})
+
+    def weights(self) -> np.ndarray:
+        w = np.array([self.procedural, self.photos, self.clips], np.float64)
+        return w / w.sum()
 
 
 def augment(spikes: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
@@ -30,62 +62,111 @@ def augment(spikes: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
     return spikes, truth
 
 
-class SimulatedBatches:
-    """``batch(step)`` -> ``(spikes (B, 41, P, P) float32, truth (B, 5, P, P) float32)`` tensors.
+class SampleMaker:
+    """Makes training samples (module doc); picklable, so worker processes hold a copy.
 
-    With ``cache_size`` > 0 a pool of that many samples is simulated once (and kept, bit-packed,
-    under ``cache_dir`` when given) and batches draw from it; with 0 every sample is new.
+    Args:
+        patch: side of the square patches (a multiple of the network's size multiple).
+        seed, rank: the run's seed and this process's data-parallel rank.
+        mix: shares of procedural, photo and clip content.
+        index: the natural content (None: procedural only, whatever ``mix`` says).
+        real_sensor: the real-like regime, drawn around it per sample (half the samples);
+            None: :meth:`SensorConfig.random`'s real-like draws.
     """
 
     def __init__(
         self,
         patch: int,
-        batch_size: int,
         seed: int,
         rank: int = 0,
-        cache_size: int = 0,
-        cache_dir: str | Path | None = None,
+        mix: DataMix | None = None,
+        index: SourceIndex | None = None,
+        real_sensor: SensorConfig | None = None,
     ):
-        if patch % 4:
-            raise ValueError(f"patch must be a multiple of 4 (the pyramid's), got {patch}")
-        self.patch, self.batch_size, self.seed, self.rank = patch, batch_size, seed, rank
-        self.cache = self._load_or_build_cache(cache_size, cache_dir) if cache_size else None
+        self.patch, self.seed, self.rank = patch, seed, rank
+        self.index, self.real_sensor = index, real_sensor
+        mix = mix or DataMix()
+        has_photos, has_clips = bool(index and index.photos), bool(index and index.clips)
+        photos, clips = mix.photos * has_photos, mix.clips * has_clips
+        self.weights = DataMix(mix.procedural if photos + clips else 1.0, photos, clips).weights()
 
-    def _load_or_build_cache(self, size: int, cache_dir: str | Path | None):
-        path = None
-        if cache_dir is not None:
-            path = Path(cache_dir) / f"cache_seed{self.seed}_r{self.rank}_p{self.patch}_n{size}.npz"
-            if path.is_file():
-                with np.load(path) as z:
-                    return z["spikes"], z["truth"]
+    def sample(self, step: int, item: int) -> tuple[np.ndarray, np.ndarray]:
+        """Item ``item`` of the batch of ``step``: ``(41, P, P) uint8`` spikes and
+        ``(5, P, P) float32`` ground truth at the block centres, augmented."""
+        rng = np.random.default_rng([self.seed, self.rank, step, item])
+        kind = KINDS[int(rng.choice(len(KINDS), p=self.weights))]
+        motion, brightness = str(rng.choice(MOTIONS)), str(rng.choice(BRIGHTNESSES))
         p = self.patch
-        spikes = np.empty((size, 41 * p * p // 8), np.uint8)
-        truth = np.empty((size, 5, p, p), np.float32)
-        for i in tqdm(range(size), desc="simulating training cache", unit="sample"):
-            s, t = _sample(self.seed * 1000 + self.rank, i, p)
-            spikes[i] = np.packbits(s.reshape(-1))
-            truth[i] = t
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            np.savez(path, spikes=spikes, truth=truth)
+        if kind == "photos":
+            picks = rng.integers(len(self.index.photos), size=1 + MAX_LAYERS)
+            photos = [load_photo(self.index.photos[k].path) for k in picks]
+            scene = photo_scene(rng, photos, p, p, motion, brightness)
+        elif kind == "clips":
+            clip = self.index.clips[int(rng.integers(len(self.index.clips)))]
+            scene = clip_scene(rng, load_clip(clip), p, p, motion, brightness)
+        else:
+            scene = random_scene(rng, p, p, motion, brightness, PROCEDURAL_KINDS)
+        sensor = self.draw_sensor(rng)
+        spikes = simulate(scene, NET_WINDOW, sensor, rng)
+        return augment(spikes, ground_truth(scene, GT_FRAMES), rng)
+
+    def draw_sensor(self, rng: np.random.Generator) -> SensorConfig:
+        """Half the time ideal, else the real-like regime (module doc)."""
+        if self.real_sensor is None:
+            return SensorConfig.random(rng)
+        return SensorConfig.ideal() if rng.uniform() < 0.5 else self.real_sensor.jittered(rng)
+
+    def batch(self, step: int, size: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(size, 41, P, P) float32`` spikes and ``(size, 5, P, P) float32`` truth."""
+        pairs = [self.sample(step, item) for item in range(size)]
+        spikes = np.stack([np.ascontiguousarray(s, np.float32) for s, _ in pairs])
+        truth = np.stack([np.ascontiguousarray(t, np.float32) for _, t in pairs])
         return spikes, truth
 
-    def _cached(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        packed, truth = self.cache
-        p = self.patch
-        bits = np.unpackbits(packed[index], count=41 * p * p)
-        return bits.reshape(41, p, p), truth[index]
 
-    def batch(self, step: int) -> tuple[torch.Tensor, torch.Tensor]:
-        rng = np.random.default_rng([self.seed, self.rank, step])
-        spikes, truth = [], []
-        for j in range(self.batch_size):
-            if self.cache is not None:
-                s, t = self._cached(int(rng.integers(len(self.cache[1]))))
-            else:
-                index = 10**7 + step * self.batch_size + j  # never a cache index
-                s, t = _sample(self.seed * 1000 + self.rank, index, self.patch)
-            s, t = augment(s, t, rng)
-            spikes.append(np.ascontiguousarray(s, np.float32))
-            truth.append(np.ascontiguousarray(t, np.float32))
-        return torch.from_numpy(np.stack(spikes)), torch.from_numpy(np.stack(truth))
+_WORKER_MAKER: SampleMaker | None = None
+
+
+def _init_worker(maker: SampleMaker) -> None:
+    global _WORKER_MAKER
+    _WORKER_MAKER = maker
+
+
+def _worker_batch(step: int, size: int) -> tuple[np.ndarray, np.ndarray]:
+    return _WORKER_MAKER.batch(step, size)
+
+
+class Batches:
+    """``next()`` -> the batches of ``start``, ``start + 1``, ... in order, made ahead by
+    ``workers`` processes (0: in this process), at most ``2 * workers`` batches ahead."""
+
+    def __init__(self, maker: SampleMaker, batch_size: int, start: int, workers: int = 0):
+        self.maker, self.batch_size, self.step = maker, batch_size, start
+        self.pool = None
+        self.pending: deque = deque()
+        if workers > 0:
+            context = multiprocessing.get_context("spawn")
+            self.pool = context.Pool(workers, initializer=_init_worker, initargs=(maker,))
+            self.depth = 2 * workers
+            for _ in range(self.depth):
+                self._submit()
+
+    def _submit(self) -> None:
+        step = self.step + len(self.pending)  # pending holds the batches of self.step on
+        self.pending.append(self.pool.apply_async(_worker_batch, (step, self.batch_size)))
+
+    def next(self) -> tuple[np.ndarray, np.ndarray]:
+        if self.pool is None:
+            out = self.maker.batch(self.step, self.batch_size)
+            self.step += 1
+            return out
+        out = self.pending.popleft().get()
+        self.step += 1
+        self._submit()
+        return out
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.terminate()
+            self.pool.join()
+            self.pool = None

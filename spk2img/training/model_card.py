@@ -61,7 +61,7 @@ def render(
     patch = f"{tc['patch']}x{tc['patch']}"
     samples = (
         f"a pool of {tc['cache_size']} simulated {patch} windows"
-        if tc["cache_size"]
+        if tc.get("cache_size")
         else f"a freshly simulated {patch} window for every sample (none seen twice)"
     )
     history_line = f"- history: {history}\n" if history else ""
@@ -104,7 +104,7 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
   of optimiser steps on {tc["threads"]} CPU threads (2-core machine shared with development).
 - command: `spk2img train --member {tc["member"]} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]}
-  --cache-size {tc["cache_size"]} --threads {tc["threads"]}`
+  {" ".join(f"--data {d}" for d in tc.get("data", []))} --threads {tc["threads"]}`
 {history_line}- to continue: `{resume}`,
   then the command above with a larger `--steps` (batches are a function of seed and step).
 

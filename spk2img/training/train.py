@@ -10,7 +10,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,14 +19,20 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
+from spk2img.core.errors import InputError
 from spk2img.core.evaluation import baseline_scores, network_scorer, score, validation_set
 from spk2img.core.provenance import git_commit
+from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.model.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
 from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
 
-from .data import SimulatedBatches
+from .data import Batches, DataMix, SampleMaker
 from .loss import hierarchical_l1
+from .natural_validation import HELD_OUT, natural_validation_set
+from .sources import SourceIndex
+
+CHECKPOINT_SECONDS = 600.0
 
 
 @dataclass
@@ -48,14 +54,24 @@ class TrainConfig:
     warmup_steps: int = 200
     seed: int = 0
     """Seed of the initial weights and of every batch (batches are a function of seed and step)."""
-    cache_size: int = 0
-    """Simulate this many samples once and train on them (0: a fresh sample every time)."""
+    data: list[str] = field(default_factory=list)
+    """Folders of photographs and clips (:mod:`spk2img.training.sources`); none: procedural
+    content only. The held-out sources of the natural validation are never trained on."""
+    data_mix: str = "photos=0.5,clips=0.3,procedural=0.2"
+    """Shares of photo, clip and procedural samples (natural kinds need ``--data``)."""
+    sensor_preset: str = ""
+    """The real-like regime's sensor preset (JSON of ``spk2img fit-sensor``); empty: the one
+    fitted to a real PKU capture that ships with spk2img. Half the samples are ideal."""
+    workers: int = 1
+    """Processes that make the batches ahead (0: in the training process)."""
+    device: str = "cpu"
+    """``cpu`` or ``cuda`` (bf16 autocast on CUDA)."""
     val_every: int = 500
-    """Steps between validations (PSNR/SSIM on the fixed simulated validation set)."""
+    """Steps between validations (PSNR/SSIM on the natural and the procedural sets)."""
     val_per_class: int = 2
     """Validation scenes per (motion, brightness) class; 9 classes."""
     checkpoint_every: int = 100
-    """Steps between checkpoints (``last.pt``)."""
+    """Steps between checkpoints (``last.pt``); one is also written every 10 minutes."""
     threads: int = 1
     """Torch intra-op threads per process."""
     log_every: int = 10
@@ -89,11 +105,18 @@ class _Run:
 
 def train(cfg: TrainConfig) -> dict:
     """Run (or resume) training; returns the last validation scores (rank 0) or ``{}``."""
+    device = training_device(cfg.device)
     run = _Run()
     torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir)
     torch.manual_seed(cfg.seed)
     model = Spk2ImgNet(get_config(cfg.member))
+    if cfg.patch % model.config.size_multiple:
+        raise InputError(
+            f"--patch {cfg.patch}: must be a multiple of {model.config.size_multiple} for "
+            f"{cfg.member}"
+        )
+    model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     start, wall = 0, 0.0
     last = run_dir / "last.pt"
@@ -104,16 +127,33 @@ def train(cfg: TrainConfig) -> dict:
         start, wall = int(state["step"]), float(state["wall_s"])
     commit = state.get("commit", "unknown") if start else git_commit()  # the code that trains
     net = DistributedDataParallel(model) if run.world > 1 else model
-    data = SimulatedBatches(
-        cfg.patch, cfg.batch_size, cfg.seed, run.rank, cfg.cache_size, run_dir / "cache"
-    )
+    index = SourceIndex.scan(cfg.data, cfg.patch, HELD_OUT) if cfg.data else None
+    real_sensor = load_preset(cfg.sensor_preset or FITTED_PRESET)
+    mix = DataMix.parse(cfg.data_mix)
+    maker = SampleMaker(cfg.patch, cfg.seed, run.rank, mix, index, real_sensor)
     log = _Log(run_dir / "metrics.jsonl") if run.main else None
-    scenes = validation_set(cfg.val_per_class) if run.main else []
+    val_sets = {}
+    if run.main:
+        val_sets["natural"] = natural_validation_set(cfg.data) if cfg.data else []
+        val_sets["procedural"] = validation_set(cfg.val_per_class)
+        log.write(
+            kind="data",
+            step=start,
+            sources=index.summary() if index else None,
+            mix=dict(zip(("procedural", "photos", "clips"), maker.weights.tolist(), strict=True)),
+            real_sensor=dataclasses.asdict(real_sensor),
+            natural_validation_scenes=len(val_sets["natural"]),
+        )
+    selection = "natural" if val_sets.get("natural") else "procedural"
     best = -math.inf
     if run.main and start == 0:
-        log.write(kind="baselines", **baseline_scores(scenes))
+        log.write(kind="baselines", **baseline_scores(val_sets["procedural"]))
+        if val_sets["natural"]:
+            log.write(kind="natural_baselines", **baseline_scores(val_sets["natural"]))
     if run.main and (run_dir / "best.pt").is_file():
-        best = float(load_checkpoint(run_dir / "best.pt").get("val_psnr", -math.inf))
+        previous = load_checkpoint(run_dir / "best.pt")
+        if previous.get("val_set", "procedural") == selection:
+            best = float(previous.get("val_psnr", -math.inf))
 
     def checkpoint(path: Path, step: int, **extra) -> None:
         save_checkpoint(
@@ -139,42 +179,56 @@ def train(cfg: TrainConfig) -> dict:
     )
     val: dict = {}
     tick, tick_step = time.perf_counter(), start
-    for step in range(start, cfg.steps):
-        t0 = time.perf_counter()
-        for group in optimizer.param_groups:
-            group["lr"] = learning_rate(cfg, step)
-        spikes, truth = data.batch(step)
-        image, estimates = net(spikes)
-        loss = hierarchical_l1(image, estimates, truth)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        wall += time.perf_counter() - t0
-        done = step + 1
-        if not run.main:
-            continue
-        bar.update(1)
-        if done % cfg.log_every == 0 or done == cfg.steps:
-            rate = (done - tick_step) / (time.perf_counter() - tick)
-            tick, tick_step = time.perf_counter(), done
-            bar.set_postfix(loss=f"{loss.item():.4f}", steps_per_s=f"{rate:.2f}")
-            log.write(
-                kind="train",
-                step=done,
-                loss=loss.item(),
-                lr=learning_rate(cfg, step),
-                steps_per_s=rate,
-                wall_s=wall,
-            )
-        if done % cfg.val_every == 0 or done == cfg.steps:
-            val = validate(model, scenes)
-            log.write(kind="val", step=done, wall_s=wall, **val)
-            if val["psnr"] > best:
-                best = val["psnr"]
-                checkpoint(run_dir / "best.pt", done, val_psnr=best)
-            model.train()
-        if done % cfg.checkpoint_every == 0 or done == cfg.steps:
-            checkpoint(last, done)
+    saved_at = time.monotonic()
+    batches = Batches(maker, cfg.batch_size, start, cfg.workers)
+    try:
+        for step in range(start, cfg.steps):
+            t0 = time.perf_counter()
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(cfg, step)
+            spikes, truth = (torch.from_numpy(a).to(device) for a in batches.next())
+            with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
+                image, estimates = net(spikes)
+                loss = hierarchical_l1(image.float(), estimates.float(), truth)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            wall += time.perf_counter() - t0
+            done = step + 1
+            if not run.main:
+                continue
+            bar.update(1)
+            if done % cfg.log_every == 0 or done == cfg.steps:
+                rate = (done - tick_step) / (time.perf_counter() - tick)
+                tick, tick_step = time.perf_counter(), done
+                eta = (cfg.steps - done) / rate
+                speed = f"{rate:.2f}"
+                bar.set_postfix(loss=f"{loss.item():.4f}", steps_per_s=speed, eta=f"{eta:.0f}s")
+                log.write(
+                    kind="train",
+                    step=done,
+                    loss=loss.item(),
+                    lr=learning_rate(cfg, step),
+                    steps_per_s=rate,
+                    eta_s=eta,
+                    wall_s=wall,
+                )
+            if done % cfg.val_every == 0 or done == cfg.steps:
+                val = validate(model, val_sets["procedural"])
+                if val_sets["natural"]:
+                    val["natural"] = validate(model, val_sets["natural"])
+                log.write(kind="val", step=done, wall_s=wall, **val)
+                chosen = val["natural"]["psnr"] if selection == "natural" else val["psnr"]
+                if chosen > best:
+                    best = chosen
+                    checkpoint(run_dir / "best.pt", done, val_psnr=best, val_set=selection)
+                model.train()
+            periodic = time.monotonic() - saved_at >= CHECKPOINT_SECONDS
+            if done % cfg.checkpoint_every == 0 or done == cfg.steps or periodic:
+                checkpoint(last, done)
+                saved_at = time.monotonic()
+    finally:
+        batches.close()
     bar.close()
     if run.world > 1:
         diff = replica_difference(model)
@@ -184,13 +238,23 @@ def train(cfg: TrainConfig) -> dict:
     return val
 
 
+def training_device(name: str) -> torch.device:
+    """``cpu`` or ``cuda`` as a device; CUDA asked for where there is none is an input error."""
+    if name not in ("cpu", "cuda"):
+        raise InputError(f"--device {name}: choose cpu or cuda")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available (torch sees none)")
+    return torch.device(name)
+
+
 def validate(model: Spk2ImgNet, scenes) -> dict:
     """Validation PSNR/SSIM of ``model`` (switched to eval mode) on ``scenes``."""
     model.eval()
+    device = next(model.parameters()).device
     with torch.inference_mode():
 
         def predict(windows: np.ndarray) -> np.ndarray:
-            return model(torch.from_numpy(windows))[0][:, 0].numpy()
+            return model(torch.from_numpy(windows).to(device))[0][:, 0].float().cpu().numpy()
 
         return score(network_scorer(predict), scenes)
 
