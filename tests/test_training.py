@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from spk2img.model.checkpoint import load_checkpoint, load_model
-from spk2img.training.data import SimulatedBatches
+from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_l1
 from spk2img.training.train import TrainConfig, learning_rate, train
 
@@ -22,6 +22,7 @@ TINY_RUN = dict(
     log_every=1,
     progress=False,
     warmup_steps=2,
+    workers=0,
 )
 
 
@@ -39,13 +40,25 @@ def test_loss_is_l1_plus_weighted_intermediate_terms():
 
 
 def test_batches_are_a_function_of_seed_and_step():
-    a = SimulatedBatches(16, 2, seed=3).batch(5)
-    b = SimulatedBatches(16, 2, seed=3).batch(5)
-    c = SimulatedBatches(16, 2, seed=3, rank=1).batch(5)
-    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
-    assert not torch.equal(a[0], c[0])
+    a = SampleMaker(16, seed=3).batch(5, 2)
+    b = SampleMaker(16, seed=3).batch(5, 2)
+    c = SampleMaker(16, seed=3, rank=1).batch(5, 2)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    assert not np.array_equal(a[0], c[0])
     assert a[0].shape == (2, 41, 16, 16) and a[1].shape == (2, 5, 16, 16)
-    assert set(np.unique(a[0].numpy())) <= {0.0, 1.0}
+    assert set(np.unique(a[0])) <= {0.0, 1.0}
+
+
+def test_worker_processes_make_the_same_batches_in_order():
+    maker = SampleMaker(16, seed=4)
+    batches = Batches(maker, 2, start=7, workers=1)
+    try:
+        made = [batches.next() for _ in range(3)]
+    finally:
+        batches.close()
+    for step, (spikes, truth) in enumerate(made, start=7):
+        expected = maker.batch(step, 2)
+        assert np.array_equal(spikes, expected[0]) and np.array_equal(truth, expected[1])
 
 
 def test_resume_continues_the_same_loss_curve(tmp_path):
