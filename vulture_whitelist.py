@@ -32,6 +32,5 @@ _.writeable  # numpy's ndarray.flags
 _.write_spikes  # spk2img.core.spikes: writes a stream as .dat, .npy or .npz
 _.codes_held  # spk2img.core.block_stream.BlockReuseStream: what a stream holds
 
-# dead code in spk2img/model/, left to that package's owner (issue 18): delete the function
-# and this entry together
-_.release_checkpoint  # spk2img/model/checkpoint.py: nothing calls it
+# called from a shell script
+_.release_checkpoint  # spk2img/model/checkpoint.py: called by scripts/ship_default_model.sh

