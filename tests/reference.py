@@ -1,4 +1,4 @@
-"""An independent, deliberately plain implementation of SPEC §1–3 (loops, no shared code),
+"""An independent, deliberately plain implementation of docs/format.md (loops, no shared code),
 used only by tests to check the package against the contract."""
 
 from __future__ import annotations

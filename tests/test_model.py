@@ -140,7 +140,7 @@ def test_members_shrink_in_parameters_and_macs():
     assert 30_000 <= params["tiny"] <= 80_000
     macs = {name: count_macs(config, 40, 40) for name, config in MEMBERS.items()}
     assert macs["paper"] > macs["small"] > macs["tiny"] > 0
-    # SPEC §4: about 1.0 T MACs per 250x400 frame (252x400 once padded to a multiple of 4)
+    # docs/cli.md (models): ~1.0 T MACs per 250x400 frame (252x400 once padded to a multiple of 4)
     assert count_macs(PAPER, 248, 400) == pytest.approx(1.0e12, rel=0.03)
 
 

@@ -13,7 +13,7 @@ from spk2img.core.framing import DoneRecord, ErrorRecord, FrameRecord, RecordPar
 
 
 def test_first_frame_arrives_before_the_upload_ends(service):
-    """A 250x400 stream of 161 frames (SPEC §7's case): send 70 frames, read a frame, send the
+    """A 250x400 stream of 161 frames (docs/http.md's case): send 70 frames, read a frame, send the
     rest. The frames received during the upload equal the start of the whole answer."""
     height, width, total, first_part = 250, 400, 161, 70
     _, body = stream_bytes(total, height, width, seed=5)

@@ -1,4 +1,4 @@
-"""Numerical checks of the spike-camera simulator (SPEC §2) and its scenes."""
+"""Numerical checks of the spike-camera simulator (docs/format.md) and its scenes."""
 
 from __future__ import annotations
 

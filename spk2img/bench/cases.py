@@ -2,7 +2,7 @@
 
 Five scene classes (static, slow and fast motion at normal light, dim and bright light with slow
 motion), each filmed half by the noise-free sensor of spike-REDS and half by a real-like one
-(SPEC §2). Seeds start from :data:`BENCH_SEED`, disjoint from training's (``[seed, index]`` and
+(docs/format.md). Seeds from :data:`BENCH_SEED` are disjoint from training's (``[seed, index]`` and
 ``[seed * 1000 + rank, index]`` with small seeds), validation's (987,654,321), the model
 card's held-out test set's (123,456,789) and the int8 calibration's (161,803).
 """

@@ -31,7 +31,7 @@ BACKENDS = {
 
 @dataclass(frozen=True)
 class TfpRow:
-    """TFP (SPEC §3): the mean of ``window`` frames around the centre, divided by 0.6."""
+    """TFP (docs/format.md): the mean of ``window`` frames around the centre, divided by 0.6."""
 
     kind: ClassVar[str] = "tfp"
     window: int = 41
@@ -55,7 +55,7 @@ class TfpRow:
 
 @dataclass(frozen=True)
 class TfiRow:
-    """TFI (SPEC §3): the inverse of the interval between the spikes around the centre."""
+    """TFI (docs/format.md): the inverse of the interval between the spikes around the centre."""
 
     kind: ClassVar[str] = "tfi"
 

@@ -1,5 +1,6 @@
-"""The ``spk2img`` command line (SPEC §6). Each subcommand is a module with ``add_parser`` and
-``run``; heavy imports (torch, onnxruntime, fastapi) happen inside ``run`` only."""
+"""The ``spk2img`` command line (docs/cli.md). Each subcommand is a module with ``add_parser`` and
+``run``; heavy imports (torch, onnxruntime, fastapi) happen inside ``run`` only, and
+:mod:`spk2img.cli.extras` decides before ``run`` whether the extra a command needs is there."""
 
 from __future__ import annotations
 
@@ -8,6 +9,13 @@ import importlib
 import sys
 
 from spk2img import __version__
+from spk2img.cli.extras import (
+    EXIT_MISSING_EXTRA,
+    MissingExtra,
+    extra_for_module,
+    extra_message,
+    missing_extra,
+)
 from spk2img.core.errors import InputError
 
 SUBCOMMANDS = [
@@ -37,16 +45,34 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point: parse ``argv`` and run the subcommand; input errors exit 2 with one line."""
-    args = build_parser().parse_args(argv)
+    """Entry point: parse ``argv`` and run the subcommand. Input errors exit 2 and a missing
+    extra exits 3, each with one line on stderr (docs/cli.md)."""
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    problem = missing_extra(args)  # before unknown flags: without its extra, a command may
+    if problem:  # lack flags (serve builds them from the serve extra's settings)
+        return _fail(args, problem, EXIT_MISSING_EXTRA)
+    if unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
         return int(args.run(args) or 0)
+    except MissingExtra as exc:
+        return _fail(args, str(exc), EXIT_MISSING_EXTRA)
     except (InputError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        print(f"spk2img {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(args, str(exc), 2)
+    except ModuleNotFoundError as exc:
+        extra = extra_for_module(exc.name)
+        if extra is None:
+            raise
+        return _fail(args, extra_message(extra, args.command, [exc.name]), EXIT_MISSING_EXTRA)
     except KeyboardInterrupt:
         print("spk2img: interrupted", file=sys.stderr)
         return 130
+
+
+def _fail(args: argparse.Namespace, message: str, code: int) -> int:
+    print(f"spk2img {args.command}: error: {message}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

@@ -1,5 +1,7 @@
 """``spk2img bench``: every method's speed, memory and error in one table and one plot
-(``docs/bench.md``, ``docs/bench.json``, ``docs/images/pareto.png``)."""
+(``bench.md``, ``bench.json``, ``images/pareto.png``), written into a fresh run folder
+``bench-runs/<UTC time>/`` (git-ignored) by default; only ``--update-docs`` rewrites the
+committed ``docs/`` copies."""
 
 from __future__ import annotations
 
@@ -7,9 +9,14 @@ import argparse
 import sys
 import time
 from dataclasses import replace
+from datetime import UTC, datetime
 from pathlib import Path
 
 from spk2img.core.errors import InputError
+
+RUNS_DIR = Path("bench-runs")
+"""Where runs go by default, one folder each (git-ignored)."""
+DOCS_DIR = Path("docs")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -19,8 +26,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Time TFP, TFI and each network (family members with random weights, the "
         "shipped model, --trained checkpoints) on every backend, each in a fresh process; score "
         "them on a fixed simulated benchmark set; load-test the HTTP service; write bench.md, "
-        "bench.json and images/pareto.png into --out-dir. Needs the training, export and serve "
-        "extras and matplotlib. Run it on an otherwise idle machine.",
+        "bench.json and images/pareto.png into a new run folder bench-runs/<UTC time>/ (or "
+        "--out-dir); --update-docs writes them over the committed copies in docs/. Needs every "
+        'extra: pip install -e ".[all]". Run it on an otherwise idle machine.',
     )
     p.add_argument(
         "--quick",
@@ -28,7 +36,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="CI smoke run: 64x96 frames, 3 repeats, the tiny member only, a short "
         "service run (under 2 minutes on 2 cores)",
     )
-    p.add_argument("--out-dir", type=Path, default=Path("docs"), help="default: docs")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
+        "--out-dir",
+        type=Path,
+        help=f"write the files here (default: a new folder {RUNS_DIR}/<UTC time>/)",
+    )
+    where.add_argument(
+        "--update-docs",
+        action="store_true",
+        help=f"write them into {DOCS_DIR}/, replacing the committed results",
+    )
     p.add_argument("--threads", default="1,2", help="thread counts to time, e.g. 1,2 (default)")
     p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 3)")
     p.add_argument(
@@ -56,13 +74,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    args.out_dir = out_dir(args)
     options = bench_options(args)
-    try:
-        from spk2img.bench.report import write_report
-        from spk2img.bench.runner import run_benchmark, run_streaming_only
-        from spk2img.bench.streaming import write_streaming_report
-    except ImportError as exc:
-        raise InputError(f"bench needs every extra: pip install -e '.[all]' ({exc})") from exc
+    from spk2img.bench.report import write_report  # every extra: spk2img.cli.extras checked
+    from spk2img.bench.runner import run_benchmark, run_streaming_only
+    from spk2img.bench.streaming import write_streaming_report
 
     start = time.monotonic()
 
@@ -82,6 +98,21 @@ def run(args: argparse.Namespace) -> int:
     for path in paths:
         log(f"wrote {path}")
     return 0
+
+
+def out_dir(args: argparse.Namespace, now: datetime | None = None) -> Path:
+    """Where a run writes: ``--out-dir``, ``docs/`` with ``--update-docs``, else a new folder
+    ``bench-runs/YYYYmmdd-HHMMSS/`` (UTC; ``-2``, ``-3`` … if it exists already)."""
+    if args.out_dir is not None:
+        return args.out_dir
+    if args.update_docs:
+        return DOCS_DIR
+    stamp = (now or datetime.now(UTC)).strftime("%Y%m%d-%H%M%S")
+    path, n = RUNS_DIR / stamp, 1
+    while path.exists():
+        n += 1
+        path = RUNS_DIR / f"{stamp}-{n}"
+    return path
 
 
 def bench_options(args: argparse.Namespace):
@@ -108,7 +139,7 @@ def bench_options(args: argparse.Namespace):
     command = [
         "spk2img bench",
         "--quick" if args.quick else "",
-        f"--out-dir {args.out_dir}",
+        "--update-docs" if args.out_dir == DOCS_DIR else f"--out-dir {args.out_dir}",
         f"--threads {','.join(map(str, threads))}",
     ]
     if args.streaming_only:  # the rows' options do not apply

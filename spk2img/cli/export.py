@@ -8,7 +8,6 @@ import json
 import sys
 from pathlib import Path
 
-from spk2img.cli.extras import needs_extra
 from spk2img.cli.verify import parse_size
 from spk2img.core.errors import InputError
 
@@ -60,17 +59,17 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix != ".onnx":
         raise InputError(f"--out must name a .onnx file, got {args.out}")
     height, width = parse_size(args.example_size)
-    with needs_extra("export", "export"):
-        import torch
+    import torch  # the export extra (spk2img.cli.extras checked it is there)
 
-        from spk2img.export.onnx_export import (
-            ExportConfig,
-            ExportError,
-            checkpoint_source,
-            operator_counts,
-            random_source,
-        )
-        from spk2img.export.pipeline import export_verified
+    from spk2img.export.onnx_export import (
+        ExportConfig,
+        ExportError,
+        checkpoint_source,
+        operator_counts,
+        random_source,
+    )
+    from spk2img.export.pipeline import export_verified
+
     if args.threads:
         torch.set_num_threads(args.threads)
     if args.random_weights:

@@ -3,20 +3,20 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-from spk2img.cli.extras import needs_extra
+from spk2img import api
+from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.core.adaptive import QUALITIES, BalancedStream
 from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.errors import InputError
-from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, method_plan
-from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, read_spikes
-from spk2img.core.stream import collect, frame_chunks, run_stream
+from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
+from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
+from spk2img.core.stream import collect
 
-DEFAULT_STRIDE = 7
+DEFAULT_STRIDE = api.DEFAULT_STRIDE
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -58,7 +58,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--url", help="send the work to a running service, e.g. http://127.0.0.1:8000")
     p.add_argument("--png-dir", type=Path, help="also save each frame as a PNG (gamma 1/2.2)")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_progress_flags(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out must name a .npz file, got {args.out}")
     how = ""
     if args.url:
+        args.no_progress = not show_progress(args)  # the client's bar follows the same rule
         frames, centers = _reconstruct_remote(args, stride)
     else:
         frames, centers, how = _reconstruct_local(args, stride)
@@ -76,28 +77,40 @@ def run(args: argparse.Namespace) -> int:
     np.savez_compressed(args.out, frames=frames, centers=centers)
     if args.png_dir:
         save_pngs(args.png_dir, frames, centers)
-    print(
+    say(
+        args,
         f"wrote {len(centers)} frames of {frames.shape[1]}x{frames.shape[2]} to {args.out}{how}",
-        file=sys.stderr,
     )
     return 0
 
 
 def _reconstruct_local(args: argparse.Namespace, stride: int | None):
-    from tqdm import tqdm
-
-    spikes = read_spikes(args.input, args.height, args.width)
-    height, width = spikes.shape[1:]
-    plan = method_plan(args.method, args.centers, stride, args.window)
-    n_out = len(plan.centers_for(len(spikes)))
-    predict = load_predictor(args) if args.method == "net" and args.quality != "fast" else None
-    codec = None if predict is None or args.no_block_reuse else load_codec(args, predict)
-    recon = build_reconstructor(
-        args.method, height, width, plan, predict, codec=codec, quality=args.quality
+    """Through the public API (:class:`spk2img.Reconstructor`), with a bar over the stream's
+    frames that advances as each frame is read and each centre is done."""
+    spikes = api.read_spikes(args.input, args.height, args.width)
+    recon = api.Reconstructor(
+        args.method,
+        quality=args.quality,
+        window=args.window,
+        model=args.model,
+        backend=args.backend,
+        checkpoint=args.checkpoint,
+        threads=args.threads,
+        block_reuse=not args.no_block_reuse,
     )
-    results = run_stream(recon, frame_chunks(spikes))
-    bar = tqdm(results, total=n_out, unit="frame", disable=args.no_progress, file=sys.stderr)
-    return (*collect(bar, height, width), compute_note(recon))
+    n_out = len(recon.centers_for(len(spikes), args.centers, stride))
+    pairs = []
+    with progress_bar(args, total=len(spikes)) as bar:
+        bar.set_postfix_str(f"0/{n_out} out")
+
+        def advance(read: int) -> None:
+            bar.update(read - bar.n)
+
+        for pair in recon.frames(spikes, centers=args.centers, stride=stride, progress=advance):
+            pairs.append(pair)
+            bar.set_postfix_str(f"{len(pairs)}/{n_out} out", refresh=False)
+    frames, centers = collect(pairs, *spikes.shape[1:])
+    return frames, centers, compute_note(recon.last_stream)
 
 
 def compute_note(recon) -> str:
@@ -110,34 +123,10 @@ def compute_note(recon) -> str:
     return ""
 
 
-def load_predictor(args: argparse.Namespace):
-    """The model for ``--method net``: ONNX by default, torch with ``--backend torch``."""
-    if args.backend == "torch":
-        with needs_extra("train", "--backend torch"):
-            from spk2img.model.predictor import TorchPredictor
-        return TorchPredictor(args.checkpoint, threads=args.threads)
-    from spk2img.core.onnx_backend import OnnxModel
-
-    return OnnxModel(args.model, threads=args.threads)
-
-
-def load_codec(args: argparse.Namespace, predict):
-    """The block encoder and head for streams that reuse blocks: the torch predictor itself, or
-    the ONNX encoder and head graphs beside the model (None when they are not there)."""
-    if args.backend == "torch":
-        return predict
-    from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths
-
-    if not all(path.is_file() for path in block_graph_paths(predict.path).values()):
-        return None
-    return OnnxBlockCodec(predict.path, threads=args.threads)
-
-
 def _reconstruct_remote(args: argparse.Namespace, stride: int | None):
     if args.model or args.checkpoint or args.backend != "onnx":
         raise InputError("--url runs the service's own model: drop --model/--checkpoint/--backend")
-    with needs_extra("client", "--url"):
-        from spk2img.clients.remote import reconstruct_file_remote
+    from spk2img.clients.remote import reconstruct_file_remote  # the client extra
 
     return reconstruct_file_remote(args, stride)
 

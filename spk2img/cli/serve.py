@@ -12,7 +12,6 @@ import argparse
 import typing
 from typing import Any
 
-from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
 
 DEFAULT_MODEL_HINT = (
@@ -29,8 +28,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     try:
         from spk2img.service.settings import ServiceSettings
-    except ImportError:  # no serve extra: run() names it
-        p.description += " The flags need the serve extra: pip install 'spk2img[serve]'."
+    except ImportError:  # no serve extra: main() names it, whatever the flags
+        p.description += ' The flags need the serve extra: pip install -e ".[serve]".'
         return
     for name, field in ServiceSettings.model_fields.items():
         p.add_argument(
@@ -43,10 +42,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    with needs_extra("serve", "serving"):
-        import uvicorn
+    import uvicorn  # the serve extra (spk2img.cli.extras checked it is there)
 
-        from spk2img.service.app import create_app
+    from spk2img.service.app import create_app
 
     settings = settings_from_args(args)
     if not settings.model_path.is_file():

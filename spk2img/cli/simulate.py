@@ -14,8 +14,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from spk2img.cli.progress import add_progress_flags, progress_bar, say
 from spk2img.core.scenes import BRIGHTNESSES, MOTIONS, random_scene
 from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.core.simulator import SensorConfig, SpikeSimulator, ground_truth
@@ -33,7 +33,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "simulate",
         help="simulate a spike stream (.dat) and its ground truth",
-        description="Film a random scene with a simulated spike camera: write OUT.dat (SPEC §1) "
+        description="Film a random scene with a simulated spike camera: write OUT.dat "
+        "(docs/format.md) "
         "and OUT.gt.npz with 'gt' (T, H, W) float32, the linear intensity at the middle of each "
         "frame, and 'meta', a JSON string of the scene and sensor parameters.",
     )
@@ -51,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="ideal (noise-free), real (typical noises) or fitted (fitted to a real PKU capture, "
         "docs/sensor.md); default: ideal",
     )
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    add_progress_flags(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         with (
             args.out.open("wb") as dat,
             zipfile.ZipFile(gt_path, "w", allowZip64=True) as npz,
-            tqdm(total=args.frames, unit="frame", disable=args.no_progress, file=sys.stderr) as bar,
+            progress_bar(args, total=args.frames) as bar,
         ):
             npz.writestr("meta.npy", _npy_bytes(np.array(json.dumps(meta))))
             with npz.open("gt.npy", "w", force_zip64=True) as gt:  # streamed: no (T, H, W) array
@@ -89,14 +90,14 @@ def run(args: argparse.Namespace) -> int:
             f"spk2img simulate: error: cannot write {args.out} / {gt_path}: {exc}", file=sys.stderr
         )
         return 1
-    print(
+    say(
+        args,
         f"wrote {args.frames} frames of {args.height}x{args.width} to {args.out} and {gt_path}",
-        file=sys.stderr,
     )
     return 0
 
 
-def _write_stream(dat, gt, simulator: SpikeSimulator, shape: tuple, bar: tqdm) -> None:
+def _write_stream(dat, gt, simulator: SpikeSimulator, shape: tuple, bar) -> None:
     """Simulate ``shape = (T, H, W)`` chunk by chunk into the open ``.dat`` and ``gt.npy``."""
     np.lib.format.write_array_header_1_0(
         gt, {"descr": "<f4", "fortran_order": False, "shape": shape}

@@ -8,7 +8,6 @@ import json
 import sys
 from pathlib import Path
 
-from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
 
 
@@ -47,19 +46,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    with needs_extra("export", "verify"):
-        import torch
+    import torch  # the export extra (spk2img.cli.extras checked it is there)
 
-        from spk2img.core.block_model import block_graph_paths
-        from spk2img.export import hard_cases
-        from spk2img.export.hard_cases import CASE_HEIGHT, CASE_WIDTH
-        from spk2img.export.verify import (
-            ATOL,
-            VerifyReport,
-            reference_model,
-            verify_block_graphs,
-            verify_onnx,
-        )
+    from spk2img.core.block_model import block_graph_paths
+    from spk2img.export import hard_cases
+    from spk2img.export.hard_cases import CASE_HEIGHT, CASE_WIDTH
+    from spk2img.export.verify import (
+        ATOL,
+        VerifyReport,
+        reference_model,
+        verify_block_graphs,
+        verify_onnx,
+    )
+
     if args.threads:
         torch.set_num_threads(args.threads)
     model = reference_model(args.model, args.checkpoint)

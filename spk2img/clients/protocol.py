@@ -2,7 +2,7 @@
 how a ``POST /v1/reconstruct`` exchange turns bytes into frames or typed errors.
 
 The exchange is HTTP/1.1 through h11 so that the body can go out while the response comes in
-(httpx sends the whole body before it reads a response; SPEC §7).
+(httpx sends the whole body before it reads a response; docs/http.md).
 """
 
 from __future__ import annotations
@@ -77,7 +77,7 @@ def reconstruct_params(
     gamma: float | None,
     quality: str = "best",
 ) -> dict[str, str]:
-    """The query of ``POST /v1/reconstruct`` (SPEC §7); ``centers`` as a list or ``"40,80"``;
+    """The query of ``POST /v1/reconstruct`` (docs/http.md); ``centers`` as a list or ``"40,80"``;
     ``quality`` is sent when it is not the default ``best``."""
     params = {
         "height": str(upload.height),

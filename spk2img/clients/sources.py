@@ -1,4 +1,4 @@
-"""What the client can upload, turned into ``.dat`` request bodies (SPEC §1).
+"""What the client can upload, turned into ``.dat`` request bodies (docs/format.md).
 
 A source is a path (``.dat`` needs ``height``/``width``; ``.npy``/``.npz`` hold a ``(T, H, W)``
 0/1 array), ``.dat`` bytes (need ``height``/``width``), a ``(T, H, W)`` 0/1 array, or an

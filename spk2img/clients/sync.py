@@ -74,7 +74,7 @@ class Client(ClientBase):
             stride: every ``stride``-th centre with a full window.
             method: ``"net"`` (the served model, 41-frame windows), ``"tfp"`` or ``"tfi"``.
             window: TFP's window in frames (odd).
-            format: ``"float32"`` images are ``(H, W)`` linear intensity in [0, 1] (SPEC §2);
+            format: ``"float32"`` images are ``(H, W)`` linear intensity in [0, 1] (docs/format.md);
                 ``"uint8"`` and ``"png"`` are ``(H, W)`` uint8 display values.
             gamma: display gamma the service applies for ``uint8``/``png``.
             quality: for ``net``: ``"best"`` (the network everywhere), ``"balanced"`` (the

@@ -7,7 +7,7 @@
   the 16x16 tiles whose light moves during the window or is dim; the network runs on the
   bounding box of those tiles (plus :data:`CONTEXT` pixels of context) and TFP-41 fills the
   rest. A static, well-lit window costs a TFP; a window that moves all over costs the network.
-- ``fast``: TFP-41 everywhere (the classical tier, SPEC §3).
+- ``fast``: TFP-41 everywhere (the classical tier, docs/format.md).
 
 The test compares the spike counts of the window's two halves (frames ``k-20 .. k-1`` and
 ``k+1 .. k+20``): a pixel whose light stays put fires as often in both, up to the sensor's

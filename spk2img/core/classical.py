@@ -1,4 +1,4 @@
-"""Classical reconstructions (SPEC §3) on whole arrays: TFP and TFI, linear [0, 1] float32.
+"""Classical reconstructions (docs/format.md) on whole arrays: TFP and TFI, linear [0, 1] float32.
 
 Both run the streaming implementations of :mod:`spk2img.core.stream` over ``spikes`` — anything
 sliceable by frames with a ``(T, H, W)`` shape (an array or a memory-mapped

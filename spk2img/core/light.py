@@ -1,4 +1,4 @@
-"""The light convention (SPEC §2): linear intensity in [0, 1], 0.6 spikes per frame at I = 1."""
+"""The light convention (docs/format.md): linear intensity in [0, 1], 0.6 spikes/frame at I = 1."""
 
 from __future__ import annotations
 

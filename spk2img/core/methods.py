@@ -1,7 +1,7 @@
 """The reconstruction methods behind one interface: a name -> a streaming reconstructor.
 
 ``net`` runs a model (any :data:`~spk2img.core.stream.Predictor`: onnxruntime or torch) on
-41-frame windows; ``tfp`` and ``tfi`` are the classical methods of SPEC §3.
+41-frame windows; ``tfp`` and ``tfi`` are the classical methods of docs/format.md.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Continuous scenes for the spike-camera simulator (numpy only).
 
 A :class:`Scene` has ``height``, ``width``, ``intensity(t) -> (H, W) float32`` (linear
-intensity in [0, 1], SPEC §2, at time ``t`` in frame intervals) and its batched form
+intensity in [0, 1], docs/format.md, at time ``t`` in frame intervals) and its batched form
 ``intensities(times) -> (N, H, W)``, which the simulator uses. :class:`MovingImage` moves a
 still source image (procedural content or an optional natural photograph) with a smooth
 output-to-source coordinate map (translation, rotation, zoom and a non-rigid flow) and samples

@@ -1,4 +1,4 @@
-"""Spike-camera simulator: integrate-and-fire (SPEC §2) with optional real-sensor noises.
+"""Spike-camera simulator: integrate-and-fire (docs/format.md) with optional real-sensor noises.
 
 Each pixel integrates charge ``∫ 0.6·I dt`` (time in frame intervals; ``I`` linear in [0, 1]),
 sampled ``substeps`` times per frame interval (midpoint rule, so motion blurs inside a frame).

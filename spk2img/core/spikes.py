@@ -1,4 +1,4 @@
-"""Spike streams on disk and in memory (SPEC §1).
+"""Spike streams on disk and in memory (the format: docs/format.md).
 
 On disk (PKU ``.dat``): no header; each frame is ``ceil(H*W/8)`` bytes; pixel ``p = row*W + col``
 is bit ``p % 8`` (least significant bit first) of byte ``p // 8``; rows are stored bottom row
@@ -79,13 +79,43 @@ def as_spike_array(frames: np.ndarray) -> np.ndarray:
         return frames.astype(np.uint8)
     if not (np.issubdtype(frames.dtype, np.integer) or np.issubdtype(frames.dtype, np.floating)):
         raise SpikeFormatError(f"spike array of dtype {frames.dtype} is not numeric")
-    if frames.dtype != np.uint8:
-        if not np.isin(frames, (0, 1)).all():
-            raise SpikeFormatError("spike array values must be 0 or 1")
-        return frames.astype(np.uint8)
-    if frames.max() > 1:
-        raise SpikeFormatError("spike array values must be 0 or 1")
+    _check_values(frames)
+    return frames if frames.dtype == np.uint8 else frames.astype(np.uint8)
+
+
+CHECK_FRAMES = 256
+"""Frames checked at a time by :func:`check_spike_values` (bounded memory on large files)."""
+
+
+def check_spike_values(frames: np.ndarray, source: str | Path | None = None) -> np.ndarray:
+    """Check that ``frames`` is a non-empty ``(T, H, W)`` array of 0/1 and return it unchanged
+    (a memory-mapped array stays so: it is read :data:`CHECK_FRAMES` frames at a time).
+
+    Raises :class:`SpikeFormatError` naming the first value that is not 0 or 1 (e.g. ``2`` or
+    ``0.5``) and its frame, prefixed by ``source`` when given.
+    """
+    where = f"{source}: " if source is not None else ""
+    if frames.ndim != 3 or frames.size == 0:
+        raise SpikeFormatError(f"{where}expected a non-empty (T, H, W) array, got {frames.shape}")
+    if frames.dtype == np.bool_:
+        return frames
+    if not np.issubdtype(frames.dtype, np.number):
+        raise SpikeFormatError(f"{where}spike array of dtype {frames.dtype} is not numeric")
+    for start in range(0, len(frames), CHECK_FRAMES):
+        _check_values(np.asarray(frames[start : start + CHECK_FRAMES]), where, start)
     return frames
+
+
+def _check_values(frames: np.ndarray, where: str = "", first: int = 0) -> None:
+    """Raise :class:`SpikeFormatError` at the first value of ``frames`` that is not 0 or 1."""
+    bad = frames > 1 if frames.dtype == np.uint8 else ~np.isin(frames, (0, 1))
+    if bad.any():
+        t, row, col = (int(i) for i in np.argwhere(bad)[0])
+        value = frames[t, row, col].item()
+        raise SpikeFormatError(
+            f"{where}spike values must be 0 or 1, found {value!r} at frame {first + t} "
+            f"(row {row}, column {col}); this is not a spike stream (docs/format.md)"
+        )
 
 
 class DatStream:
@@ -164,11 +194,7 @@ def read_spikes(
 
 
 def _checked_array(arr: np.ndarray, path: Path) -> np.ndarray:
-    if arr.ndim != 3 or arr.size == 0:
-        raise SpikeFormatError(f"{path}: expected a non-empty (T, H, W) array, got {arr.shape}")
-    if arr.dtype == np.bool_ or not np.issubdtype(arr.dtype, np.number):
-        return as_spike_array(arr)
-    return arr  # checked for 0/1 lazily per window by as_spike_array at use
+    return check_spike_values(arr, path)  # before any work: a value of 2 or 0.5 is an error
 
 
 def write_spikes(path: str | Path, frames: np.ndarray) -> None:

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterable, Iterator
 import numpy as np
 
 from .light import SPIKE_RATE
+from .spikes import as_spike_array
 from .windows import NET_WINDOW, CenterPlan, WindowError
 
 Frame = tuple[int, np.ndarray]  # (centre index, (H, W) float32 linear intensity in [0, 1])
@@ -94,7 +95,7 @@ class WindowedReconstructor(StreamingReconstructor):
 
 
 class TFPStream(WindowedReconstructor):
-    """TFP (SPEC §3): ``mean(frames k-w//2 .. k+w//2) / 0.6``, clipped to [0, 1].
+    """TFP (docs/format.md): ``mean(frames k-w//2 .. k+w//2) / 0.6``, clipped to [0, 1].
 
     A running spike count slides with the stream: O(1) work per pixel per frame.
     """
@@ -150,7 +151,7 @@ class NetStream(WindowedReconstructor):
 
 
 class TFIStream(StreamingReconstructor):
-    """TFI (SPEC §3): ``1 / (0.6 * (t_next - t_prev))``, clipped to [0, 1], over the whole stream.
+    """TFI (docs/format.md): ``1 / (0.6 * (t_next - t_prev))`` in [0, 1], over the whole stream.
 
     ``t_prev`` is the last spike at or before ``k``, ``t_next`` the first after ``k``. A centre is
     emitted once its window has arrived and every pixel has fired after it, else at the end of the
@@ -211,9 +212,11 @@ def run_stream(recon: StreamingReconstructor, chunks: Iterable[np.ndarray]) -> I
 
 
 def frame_chunks(spikes, chunk: int = 256) -> Iterator[np.ndarray]:
-    """Slices of ``chunk`` frames of a ``(T, H, W)`` array or memory-mapped stream, in order."""
+    """Slices of ``chunk`` frames of a ``(T, H, W)`` array or memory-mapped stream, in order,
+    as ``uint8``; a value other than 0/1 raises :class:`~spk2img.core.spikes.SpikeFormatError`
+    (never cast: 2 or 0.5 is not a spike)."""
     for start in range(0, len(spikes), chunk):
-        yield np.asarray(spikes[start : start + chunk], dtype=np.uint8)
+        yield as_spike_array(np.asarray(spikes[start : start + chunk]))
 
 
 def collect(frames: Iterable[Frame], height: int, width: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """Choosing output centres and the frame windows around them (one window selector for all).
 
 A centre ``k`` with window ``w`` (odd) needs frames ``k - w//2 .. k + w//2`` of a stream of
-``T`` frames (SPEC §3, §4: the network's window is 41 frames, ``k-20 .. k+20``).
+``T`` frames (docs/format.md: the network's window is 41 frames, ``k-20 .. k+20``).
 """
 
 from __future__ import annotations

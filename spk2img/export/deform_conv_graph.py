@@ -5,7 +5,7 @@ call ``torch.ops.spk2img.modulated_deform_conv2d``, a custom op whose eager kern
 grid_sample implementation of :mod:`spk2img.model.deform_conv` (so the traced model computes
 the same thing) and which :data:`DEFORM_CONV_TRANSLATION` turns into one ``DeformConv`` node.
 
-Semantics agree (SPEC §4; ONNX ``DeformConv`` reference implementation): the offset input is
+Semantics agree (docs/export.md; ONNX ``DeformConv`` reference implementation): the offset input is
 ``(b, offset_group * 2 * kh * kw, h_out, w_out)`` read as ``(offset_group, kh, kw, [dy, dx])``,
 the mask ``(b, offset_group * kh * kw, h_out, w_out)`` as ``(offset_group, kh, kw)``, taps
 sample at ``(y - pad + i * dil + dy, x - pad + j * dil + dx)`` bilinearly with zeros outside

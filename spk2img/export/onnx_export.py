@@ -1,7 +1,7 @@
 """Spk2ImgNet -> one self-contained ONNX file with dynamic batch, height and width.
 
 The graph reads ``spikes`` ``(B, 41, H, W)`` float32 0/1 and writes ``image`` ``(B, 1, H, W)``,
-linear intensity clipped to [0, 1] (SPEC §2). Any ``H`` and ``W`` work: the network pads to its
+linear intensity in [0, 1] (docs/format.md). Any ``H`` and ``W`` work: the network pads to its
 pyramid's multiple and crops back inside the graph (:func:`spk2img.model.network.
 pad_to_multiple`), with pad amounts computed from the input's shape.
 

@@ -1,6 +1,6 @@
 """Spk2ImgNet hyper-parameters and the named family members built from them.
 
-``paper`` is the network of SPEC §4 as published (3,904,185 parameters); the smaller members keep
+``paper`` is the published network (docs/model_card.md, 3,904,185 parameters); smaller members keep
 every idea of it (SALI, pyramid deformable alignment, reliability fusion) at lower width and depth.
 """
 
@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 
 @dataclass(frozen=True)
 class Spk2ImgNetConfig:
-    """Shape of a Spk2ImgNet; the defaults are the published network (SPEC §4)."""
+    """Shape of a Spk2ImgNet; the defaults are the published network (docs/model_card.md)."""
 
     block_frames: int = 13
     """Frames of one temporal block (the key block is centred on the window's centre)."""

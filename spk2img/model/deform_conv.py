@@ -1,6 +1,6 @@
 """Modulated deformable convolution (DCNv2) built on ``grid_sample``, so it exports to ONNX.
 
-Semantics are those of torchvision's ``deform_conv2d`` with a mask (SPEC §4): for offset group
+Semantics as torchvision's ``deform_conv2d`` with a mask (docs/export.md): for offset group
 ``g`` and kernel tap ``k = i * kw + j``, offset channel ``g * 2K + 2k`` is ``dy`` and
 ``g * 2K + 2k + 1`` is ``dx``, mask channel ``g * K + k`` scales the sample, and the tap samples
 the input at ``(y - pad + i * dil + dy, x - pad + j * dil + dx)``, bilinearly, zero outside the

@@ -1,5 +1,5 @@
 """The full-duplex response of ``POST /v1/reconstruct``: it drives ASGI ``receive``/``send``
-itself, so frames go out while the body is still coming in (SPEC §7).
+itself, so frames go out while the body is still coming in (docs/http.md).
 
 The loop is: receive a body chunk → decode and reconstruct it in the pool → send the records it
 completed → receive the next chunk. Nothing is buffered beyond one chunk and the window, and a

@@ -1,4 +1,4 @@
-"""The hierarchical L1 loss of Spk2ImgNet (SPEC §4)."""
+"""The hierarchical L1 loss of Spk2ImgNet (docs/model_card.md)."""
 
 from __future__ import annotations
 

@@ -88,7 +88,7 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
 - parameters: **{params:,}**; **{macs / 1e9:.1f} G MACs** per 250x400 frame
   (= {2 * macs / 1e9:.1f} GFLOPs; `spk2img models` lists every member)
 - input: 41 spike frames `(B, 41, H, W)` 0/1 around the centre; output `(B, 1, H, W)` linear
-  intensity in [0, 1] (SPEC §2); any H and W.
+  intensity in [0, 1] (docs/format.md); any H and W.
 
 ## Training
 - data: the project's simulator, in-process (`spk2img.core.simulator.training_sample`): random

@@ -55,7 +55,7 @@ _ERRORS = {
     openapi_extra={
         "requestBody": {
             "required": True,
-            "description": "the .dat spike stream (SPEC §1); Content-Length or chunked",
+            "description": "the .dat spike stream (docs/format.md); Content-Length or chunked",
             "content": {BODY_TYPE: {"schema": {"type": "string", "format": "binary"}}},
         }
     },

@@ -1,0 +1,294 @@
+"""The public in-process API: read and write spike streams, reconstruct frames.
+
+Everything here is re-exported by :mod:`spk2img` (``spk2img.reconstruct``, …) and is what the
+``spk2img reconstruct`` command itself calls. Conventions (docs/format.md):
+
+- A spike stream is ``(T, H, W)``: ``T`` frames in time order, ``H`` rows (top row first),
+  ``W`` columns, values 0 or 1 (any other value is an error).
+- Reconstructed frames are ``(N, H, W) float32`` *linear* intensity in [0, 1] (a pixel of
+  intensity ``I`` fires ``0.6 * I`` spikes a frame on average); PNGs apply display gamma.
+- A centre is a frame index ``k`` of the stream; the frame reconstructed at ``k`` uses the
+  window of frames ``k - window//2 .. k + window//2`` (41 frames for the network).
+
+Importing this module imports numpy only; onnxruntime or torch load when a
+:class:`Reconstructor` for ``method="net"`` is built.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import NamedTuple, TypeAlias
+
+import numpy as np
+
+from spk2img.core import spikes as _spikes
+from spk2img.core.adaptive import QUALITIES, check_quality
+from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, check_method
+from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
+from spk2img.core.stream import StreamingReconstructor, collect, frame_chunks
+from spk2img.core.windows import NET_WINDOW, CenterPlan, parse_centers
+
+__all__ = [
+    "DEFAULT_STRIDE",
+    "METHODS",
+    "QUALITIES",
+    "Reconstruction",
+    "Reconstructor",
+    "Spikes",
+    "reconstruct",
+    "read_spikes",
+    "write_spikes",
+]
+
+DEFAULT_STRIDE = 7
+"""Without ``centers`` or ``stride``: every 7th centre with a full window (7 frames is the
+network's block step, so each 13-frame block is encoded once)."""
+
+Spikes: TypeAlias = np.ndarray | DatStream
+"""A spike stream: a ``(T, H, W)`` array of 0/1, or a memory-mapped ``.dat``
+(:func:`read_spikes`), which supports ``len()``, ``.shape`` and frame slices ``s[a:b]``."""
+
+Centers: TypeAlias = Sequence[int] | np.ndarray | str | None
+
+
+class Reconstruction(NamedTuple):
+    """What :func:`reconstruct` returns; unpacks as ``frames, centers = …``."""
+
+    frames: np.ndarray
+    """``(N, H, W) float32``: linear intensity in [0, 1], one image per centre."""
+    centers: np.ndarray
+    """``(N,) int64``: the stream frame index each image is centred on, ascending."""
+
+
+def read_spikes(
+    path: str | Path, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH
+) -> Spikes:
+    """Open a spike stream file.
+
+    Args:
+        path: a ``.dat`` (PKU format: no header, ``ceil(H*W/8)`` bytes a frame; opened
+            memory-mapped, so a multi-GB recording is not loaded), a ``.npy`` (memory-mapped) or
+            a ``.npz`` (the array ``spk`` or ``spikes``, else its only array) holding a
+            ``(T, H, W)`` array of 0/1.
+        height, width: the frame size in pixels, used by ``.dat`` only (default 250x400,
+            the PKU camera's).
+
+    Returns:
+        ``(T, H, W)`` spikes, upright: an ``np.ndarray`` or, for ``.dat``, a
+        :class:`~spk2img.core.spikes.DatStream` that decodes frames when sliced.
+
+    Raises:
+        FileNotFoundError: no such file.
+        spk2img.core.spikes.SpikeFormatError: (a ``ValueError``) a file that is not a whole
+            number of frames, an unknown suffix, an array that is not ``(T, H, W)`` or holds a
+            value other than 0 and 1.
+    """
+    return _spikes.read_spikes(path, height, width)
+
+
+def write_spikes(path: str | Path, spikes: np.ndarray) -> None:
+    """Write ``(T, H, W)`` 0/1 spikes to ``path``: ``.dat`` (PKU format), ``.npy`` or ``.npz``
+    (key ``spk``). Raises :class:`~spk2img.core.spikes.SpikeFormatError` for values other than
+    0/1, a shape that is not ``(T, H, W)`` or an unknown suffix."""
+    _spikes.write_spikes(path, spikes)
+
+
+class Reconstructor:
+    """A reconstruction method, with its model loaded once, for any number of streams.
+
+    >>> recon = spk2img.Reconstructor("net")           # loads the shipped ONNX model
+    >>> frames, centers = recon.reconstruct(spikes, stride=7)
+    >>> frames.shape                                    # (N, H, W) float32, linear [0, 1]
+
+    Args:
+        method: ``"net"`` (the Spk2ImgNet model on 41-frame windows), ``"tfp"`` (the mean
+            spike rate over ``window`` frames) or ``"tfi"`` (the inverse interval between the
+            spikes around each centre).
+        quality: for ``"net"``: ``"best"`` (the network on every pixel), ``"balanced"`` (the
+            network only on 16x16 tiles that move or are dim, TFP elsewhere) or ``"fast"``
+            (TFP over 41 frames, no model).
+        window: TFP's window in frames (odd; default 41); TFI and TFP accept only centres
+            with a full window. The network always uses 41.
+        model: an exported ONNX model (default: the shipped model). With ``block_reuse``, the
+            block encoder and head graphs beside it (``MODEL.encoder.onnx``,
+            ``MODEL.head.onnx``) are used when they exist.
+        backend: ``"onnx"`` (onnxruntime; the serve extra) or ``"torch"`` (the train extra).
+        checkpoint: the PyTorch checkpoint for ``backend="torch"`` (default: the shipped one).
+        threads: inference threads (None: the runtime's default).
+        block_reuse: encode each 13-frame block once when the centres share blocks (a stride
+            that is a multiple of 7); the frames equal those of whole windows to float rounding.
+    """
+
+    def __init__(
+        self,
+        method: str = "net",
+        *,
+        quality: str = "best",
+        window: int = DEFAULT_TFP_WINDOW,
+        model: str | Path | None = None,
+        backend: str = "onnx",
+        checkpoint: str | Path | None = None,
+        threads: int | None = None,
+        block_reuse: bool = True,
+    ):
+        self.method, self.quality = check_method(method), check_quality(quality)
+        self.window = NET_WINDOW if method == "net" else window
+        if backend not in ("onnx", "torch"):
+            raise ValueError(f"unknown backend {backend!r}: choose onnx or torch")
+        self.predict = None
+        self.codec = None
+        if method == "net" and quality != "fast":
+            self.predict = _load_predictor(model, backend, checkpoint, threads)
+            if block_reuse:
+                self.codec = _load_codec(self.predict, backend, threads)
+        self.last_stream: StreamingReconstructor | None = None
+        """The streaming reconstructor of the last call (its counters: ``blocks_encoded`` …)."""
+
+    def centers_for(self, n_frames: int, centers: Centers = None, stride: int | None = None):
+        """The ``(N,) int64`` centres a call with these arguments yields on a stream of
+        ``n_frames`` frames; raises :class:`~spk2img.core.windows.WindowError` (a
+        ``ValueError``) when a centre has no full window."""
+        return self._plan(centers, stride).centers_for(n_frames)
+
+    def frames(
+        self,
+        spikes: Spikes,
+        *,
+        centers: Centers = None,
+        stride: int | None = None,
+        progress: Callable[[int], None] | None = None,
+    ) -> Iterator[tuple[int, np.ndarray]]:
+        """Reconstruct lazily: ``(centre, (H, W) float32 image)`` pairs in ascending centre
+        order, each as soon as its window has been read. ``progress(n)`` is called after each
+        input frame with the number of frames read so far. The arguments are checked before
+        this returns; see :meth:`reconstruct`."""
+        return self._frames(_checked_spikes(spikes), centers, stride, progress)
+
+    def _frames(self, spikes: Spikes, centers: Centers, stride: int | None, progress):
+        n_frames, height, width = spikes.shape
+        plan = self._plan(centers, stride)
+        plan.centers_for(n_frames)  # a centre without a full window: fail before any work
+        stream = build_reconstructor(
+            self.method, height, width, plan, self.predict, codec=self.codec, quality=self.quality
+        )
+        self.last_stream = stream
+        return _run(stream, spikes, progress)
+
+    def reconstruct(
+        self, spikes: Spikes, *, centers: Centers = None, stride: int | None = None
+    ) -> Reconstruction:
+        """Reconstruct frames of one spike stream.
+
+        Args:
+            spikes: ``(T, H, W)`` 0/1 spikes (an array or what :func:`read_spikes` returns).
+            centers: the frame indices to reconstruct (a sequence of ints or ``"40,80"``);
+                each needs a full window: ``window//2 <= k < T - window//2``.
+            stride: instead, every ``stride``-th centre from the first with a full window.
+                Neither: ``stride=7``.
+
+        Returns:
+            :class:`Reconstruction`: ``frames (N, H, W) float32`` linear intensity in [0, 1]
+            and ``centers (N,) int64``.
+
+        Raises:
+            ValueError: (:class:`~spk2img.core.errors.InputError`) spikes that are not a
+                ``(T, H, W)`` 0/1 array, a centre without a full window, both ``centers`` and
+                ``stride``.
+        """
+        spikes = _checked_spikes(spikes)
+        pairs = self._frames(spikes, centers, stride, None)
+        return Reconstruction(*collect(pairs, *spikes.shape[1:]))
+
+    def _plan(self, centers: Centers, stride: int | None) -> CenterPlan:
+        if isinstance(centers, str):
+            centers = parse_centers(centers)
+        if centers is None and stride is None:
+            stride = DEFAULT_STRIDE
+        return CenterPlan(self.window, centers, stride)
+
+
+def reconstruct(
+    spikes: Spikes,
+    *,
+    centers: Centers = None,
+    stride: int | None = None,
+    method: str = "net",
+    quality: str = "best",
+    window: int = DEFAULT_TFP_WINDOW,
+    model: str | Path | None = None,
+    backend: str = "onnx",
+    threads: int | None = None,
+) -> Reconstruction:
+    """Reconstruct frames of one spike stream in one call.
+
+    >>> frames, centers = spk2img.reconstruct(spk2img.read_spikes("rec.dat"), stride=20)
+
+    ``spikes`` is ``(T, H, W)`` 0/1; the result is ``frames (N, H, W) float32`` linear
+    intensity in [0, 1] and ``centers (N,) int64`` frame indices. The arguments are those of
+    :class:`Reconstructor` and :meth:`Reconstructor.reconstruct`; build a
+    :class:`Reconstructor` once to reconstruct many streams with one loaded model.
+    """
+    recon = Reconstructor(
+        method, quality=quality, window=window, model=model, backend=backend, threads=threads
+    )
+    return recon.reconstruct(spikes, centers=centers, stride=stride)
+
+
+def _checked_spikes(spikes: Spikes) -> Spikes:
+    """A :class:`DatStream` as is (its frames are 0/1 by construction); an array checked as
+    ``(T, H, W)`` 0/1, up front when in memory, per chunk as it is read when memory-mapped
+    (:func:`read_spikes` checked it when it opened it)."""
+    if isinstance(spikes, DatStream):
+        return spikes
+    array = spikes if isinstance(spikes, np.ndarray) else np.asarray(spikes)
+    if isinstance(array, np.memmap):
+        if array.ndim != 3 or array.size == 0:
+            raise _spikes.SpikeFormatError(f"expected a (T, H, W) array, got {array.shape}")
+        return array
+    return _spikes.check_spike_values(array)
+
+
+def _run(
+    stream: StreamingReconstructor, spikes: Spikes, progress: Callable[[int], None] | None
+) -> Iterator[tuple[int, np.ndarray]]:
+    """Push the stream a frame at a time, so each centre comes out as soon as it is done."""
+    read = 0
+    for chunk in frame_chunks(spikes):
+        for i in range(len(chunk)):
+            yield from stream.push(chunk[i : i + 1])
+            read += 1
+            if progress is not None:
+                progress(read)
+    yield from stream.close()
+
+
+def _load_predictor(model, backend: str, checkpoint, threads: int | None):
+    extra = "train" if backend == "torch" else "serve"
+    try:
+        if backend == "torch":
+            from spk2img.model.predictor import TorchPredictor
+
+            return TorchPredictor(checkpoint, threads=threads)
+        from spk2img.core.onnx_backend import OnnxModel
+
+        return OnnxModel(model, threads=threads)
+    except ModuleNotFoundError as exc:  # the same words as the CLI's (spk2img.cli.extras)
+        raise ModuleNotFoundError(
+            f"method 'net' with backend {backend!r} needs the {extra} extra (not installed: "
+            f'{exc.name}): pip install -e ".[{extra}]" in a checkout, or pip install '
+            f'"spk2img[{extra}]"',
+            name=exc.name,
+        ) from exc
+
+
+def _load_codec(predict, backend: str, threads: int | None):
+    """The block encoder and head: the torch predictor itself, or the ONNX graphs beside the
+    model (None when they are not there)."""
+    if backend == "torch":
+        return predict
+    from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths
+
+    if not all(path.is_file() for path in block_graph_paths(predict.path).values()):
+        return None
+    return OnnxBlockCodec(predict.path, threads=threads)
