@@ -38,3 +38,7 @@ _.release_checkpoint  # spk2img/model/checkpoint.py: called by scripts/ship_defa
 # module hooks Python itself calls (PEP 562): spk2img/__init__.py loads its public API lazily
 _.__getattr__
 _.__dir__
+
+# asyncio and uvicorn call these (spk2img/service/server.py's protocol)
+_.eof_received  # asyncio.Protocol: the client shut down its write side (half-close)
+_.keep_alive  # uvicorn's RequestResponseCycle: close the connection after the response

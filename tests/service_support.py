@@ -45,9 +45,12 @@ class Server:
 
 @contextmanager
 def run_server(
-    model: Path, *flags: str, program: Sequence[str] = (sys.executable, "-m", "spk2img")
+    model: Path, *flags: str, program: Sequence[str] = (sys.executable, "-m", "spk2img.service")
 ) -> Iterator[Server]:
-    """Run ``PROGRAM serve --model MODEL FLAGS…`` on a free port; wait until ``/readyz`` is 200."""
+    """Run ``PROGRAM serve --model MODEL FLAGS…`` on a free port; wait until ``/readyz`` is 200.
+
+    The default program, ``python -m spk2img.service``, is ``spk2img serve`` with the server's
+    connection limits (header timeout, connection cap, half-close: spk2img.service.server)."""
     port = free_port()
     cmd = [*program, "serve", "--model", str(model), "--port", str(port)]
     cmd += ["--log-level", "warning", *flags]
@@ -212,3 +215,67 @@ def parse_frames(body: bytes) -> tuple[list[FrameRecord], DoneRecord | ErrorReco
     assert all(isinstance(f, FrameRecord) for f in frames), records
     assert isinstance(last, DoneRecord | ErrorRecord), last
     return frames, last
+
+
+@dataclass
+class AppServer:
+    """The service run in this process (uvicorn in a thread, with the server's connection
+    limits): its URL, port and app, whose state a test may look at or change."""
+
+    url: str
+    port: int
+    app: object
+
+    def get(self, path: str) -> httpx.Response:
+        return httpx.get(self.url + path, timeout=10)
+
+    @property
+    def state(self):
+        return self.app.state.service
+
+
+@contextmanager
+def run_app_server(model: Path, **settings) -> Iterator[AppServer]:
+    """Serve ``model`` with ``ServiceSettings(**settings)`` from a thread of this process;
+    wait until ``/readyz`` is 200."""
+    import uvicorn
+
+    from spk2img.service.server import server_config
+    from spk2img.service.settings import ServiceSettings
+
+    port = free_port()
+    config = server_config(ServiceSettings(model=model, port=port, log_level="warning", **settings))
+    server = uvicorn.Server(config)
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    running = AppServer(f"http://127.0.0.1:{port}", port, config.app)
+    try:
+        deadline = time.monotonic() + START_SECONDS
+        while True:
+            try:
+                if running.get("/readyz").status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            if time.monotonic() > deadline or not thread.is_alive():
+                raise RuntimeError("the in-process server did not get ready")
+            time.sleep(0.05)
+        yield running
+    finally:
+        server.should_exit = True
+        thread.join(15)
+
+
+def metric_value(text: str, name: str, **labels: str) -> float:
+    """The value of the series ``name{labels}`` in a Prometheus exposition (0 if absent)."""
+    for line in text.splitlines():
+        if line.startswith("#") or not line.startswith(name):
+            continue
+        series, _, value = line.rpartition(" ")
+        head, _, rest = series.partition("{")
+        if head != name:
+            continue
+        found = dict(part.split("=", 1) for part in rest.rstrip("}").split(",") if "=" in part)
+        if all(found.get(k) == f'"{v}"' for k, v in labels.items()):
+            return float(value)
+    return 0.0

@@ -43,6 +43,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.add_middleware(MetricsMiddleware, metrics=state.metrics)
     for router in (reconstruct.router, models.router, health.router):
         app.include_router(router)
+    state.metrics.set_paths(tuple(getattr(route, "path", "") for route in app.routes))
     return app
 
 
@@ -56,8 +57,9 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         state.codec = await asyncio.to_thread(
             OnnxBlockCodec, settings.model_path, settings.intra_op_threads
         )
-    state.pool = InferencePool(settings.job_workers, settings.max_queue)
-    state.metrics.watch_pool(lambda: state.pool.jobs, lambda: state.pool.admitted)
+    pool = InferencePool(settings.job_workers, settings.max_queue, settings.memory_budget_bytes)
+    state.pool = pool
+    state.metrics.watch_pool(lambda: pool.jobs, lambda: pool.admitted, lambda: pool.reserved)
     warm_up = asyncio.create_task(_warm_up(state))
     try:
         yield

@@ -4,6 +4,11 @@
 :class:`Admission` from its arrival until its last job has finished and runs one job at a time,
 so at most ``workers`` jobs run and at most ``max_queue`` wait: a request that finds
 ``workers + max_queue`` admissions taken is turned away (503) before its body is read.
+
+Each admission also reserves an estimate of the memory its request may use (see
+:func:`spk2img.service.reconstruction.job_memory`); a request whose estimate does not fit in
+what is left of ``budget`` bytes is turned away too. The reservation is given back with the
+place, once the request's last job has finished.
 """
 
 from __future__ import annotations
@@ -18,14 +23,22 @@ T = TypeVar("T")
 
 
 class InferencePool:
-    """A thread pool of ``workers`` threads admitting ``workers + max_queue`` requests at once."""
+    """A thread pool of ``workers`` threads admitting ``workers + max_queue`` requests at once,
+    whose memory estimates add up to at most ``budget`` bytes (0: no budget)."""
 
-    def __init__(self, workers: int, max_queue: int):
+    def __init__(self, workers: int, max_queue: int, budget: int = 0):
         self.capacity = workers + max_queue
+        self.budget = budget
         self._executor = ThreadPoolExecutor(workers, thread_name_prefix="spk2img-job")
         self._lock = threading.Lock()
         self._admitted = 0
+        self._reserved = 0
         self._jobs = 0
+
+    @property
+    def reserved(self) -> int:
+        """Bytes reserved by the admitted requests."""
+        return self._reserved
 
     @property
     def admitted(self) -> int:
@@ -37,13 +50,28 @@ class InferencePool:
         """Jobs submitted and not finished (running or queued)."""
         return self._jobs
 
-    def admit(self) -> Admission | None:
-        """An admission for one request, or ``None`` when ``capacity`` are taken."""
+    def full(self, smallest: int = 0) -> bool:
+        """Whether no request could be admitted now: every place taken, or not ``smallest``
+        bytes (the least a request reserves) left of the budget."""
+        return self._refusal(smallest) is not None
+
+    def admit(self, cost: int = 0) -> Admission | str:
+        """An admission for one request reserving ``cost`` bytes, or why there is none:
+        ``"busy"`` (``capacity`` taken) or ``"memory"`` (over the budget)."""
         with self._lock:
-            if self._admitted >= self.capacity:
-                return None
+            refusal = self._refusal(cost)
+            if refusal is not None:
+                return refusal
             self._admitted += 1
-        return Admission(self)
+            self._reserved += cost
+        return Admission(self, cost)
+
+    def _refusal(self, cost: int) -> str | None:
+        if self._admitted >= self.capacity:
+            return "busy"
+        if self.budget and self._reserved + cost > self.budget:
+            return "memory"
+        return None
 
     async def run(self, fn: Callable[..., T], *args) -> T:
         """Run ``fn(*args)`` in the pool (outside an admission: start-up work)."""
@@ -64,16 +92,17 @@ class InferencePool:
         with self._lock:
             self._jobs -= 1
 
-    def _release(self, _: Future | None = None) -> None:
+    def _release(self, cost: int) -> None:
         with self._lock:
             self._admitted -= 1
+            self._reserved -= cost
 
 
 class Admission:
     """One request's place in the pool: :meth:`run` its jobs one at a time, then :meth:`close`."""
 
-    def __init__(self, pool: InferencePool):
-        self._pool = pool
+    def __init__(self, pool: InferencePool, cost: int = 0):
+        self._pool, self._cost = pool, cost
         self._last: Future | None = None
         self._closed = False
 
@@ -91,6 +120,6 @@ class Admission:
             return
         self._closed = True
         if self._last is None:
-            self._pool._release()
+            self._pool._release(self._cost)
         else:  # called at once when the job is already done
-            self._last.add_done_callback(self._pool._release)
+            self._last.add_done_callback(lambda _: self._pool._release(self._cost))

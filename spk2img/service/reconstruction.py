@@ -20,7 +20,7 @@ from spk2img.core.light import to_display
 from spk2img.core.methods import build_reconstructor
 from spk2img.core.spikes import SpikeDecoder
 from spk2img.core.stream import Frame, Predictor, TFIStream
-from spk2img.core.windows import CenterPlan
+from spk2img.core.windows import NET_WINDOW, CenterPlan
 
 from .errors import RequestError
 from .schemas import ReconstructQuery
@@ -28,6 +28,17 @@ from .settings import ServiceSettings
 
 STEP_PIXELS = 2**22
 """Classical methods push about this many spike pixels between checks for cancellation."""
+
+NET_BYTES_PER_PIXEL = 14 * 2**10
+"""Peak memory of one model call per window pixel: measured with the shipped model and
+onnxruntime 1.32 (CPU, no arena) at 11.4 KiB (250x400), 12.7 KiB (125x200) and 13.2 KiB (64x64)
+per pixel, whole graph or block encoder and head; rounded up."""
+WINDOW_BYTES_PER_PIXEL = 16
+"""Per pixel and frame of the window: the spikes (uint8) and their float32 copy, with slack."""
+JOB_BYTES = 16 * 2**20
+"""Per request besides its frames: a decoded body piece, the upload and the encoded records."""
+FRAME_RECORD_HEAD = 8 + 8 + 4 + 4 + 4
+"""Bytes of a ``FRAM`` record before its data (tag, length, centre, height, width, format)."""
 
 
 class Cancelled(Exception):
@@ -40,6 +51,31 @@ def check_upload_size(settings: ServiceSettings, n_bytes: int, n_frames: int) ->
         raise RequestError(413, f"the upload is over {settings.max_body_bytes} bytes")
     if n_frames > settings.max_frames:
         raise RequestError(413, f"the upload is over {settings.max_frames} frames")
+
+
+def job_memory(query: ReconstructQuery, settings: ServiceSettings, response_bytes: int) -> int:
+    """An upper estimate of the memory one request may use: the model's activations (``net``:
+    :data:`NET_BYTES_PER_PIXEL` per pixel and window of a call), the window, and the records
+    waiting for the client (``response_bytes``, at most ``response_buffer_bytes``)."""
+    pixels = query.height * query.width
+    model = query.method == "net" and query.quality != "fast"
+    window = NET_WINDOW if query.method == "net" else query.window
+    memory = JOB_BYTES + pixels * window * WINDOW_BYTES_PER_PIXEL
+    if model:
+        memory += pixels * NET_BYTES_PER_PIXEL * settings.batch
+    return memory + min(response_bytes, settings.response_buffer_bytes)
+
+
+def frame_record_bytes(query: ReconstructQuery) -> int:
+    """The most bytes one ``FRAM`` record of ``query``'s frames takes (a PNG: stored blocks at
+    worst, one filter byte a row)."""
+    pixels = query.height * query.width
+    if query.format == "float32":
+        return FRAME_RECORD_HEAD + 4 * pixels
+    if query.format == "uint8":
+        return FRAME_RECORD_HEAD + pixels
+    raw = pixels + query.height
+    return FRAME_RECORD_HEAD + raw + 5 * (raw // 16_000 + 1) + 1024
 
 
 class StreamJob:

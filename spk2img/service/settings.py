@@ -63,6 +63,45 @@ class ServiceSettings(BaseSettings):
         description="encode each 13-frame block once when centres share blocks (stride a "
         "multiple of 7), with the encoder and head graphs beside the model",
     )
+    upload_read_timeout_seconds: float = Field(
+        10.0,
+        gt=0,
+        description="longest wait for the next piece of an upload; longer is 408 (in-band "
+        "after the first frame)",
+    )
+    min_upload_bytes_per_second: int = Field(
+        1024,
+        ge=0,
+        description="slowest average upload: a request may wait for its body at most "
+        "upload_read_timeout_seconds + bytes received / this rate in all (0: no minimum)",
+    )
+    header_timeout_seconds: float = Field(
+        10.0,
+        gt=0,
+        description="time to send a whole request head, from connecting or from the end of "
+        "the previous response on a kept-alive connection; the connection is closed after it",
+    )
+    keep_alive_seconds: int = Field(
+        5, ge=1, description="an idle kept-alive connection is closed after this (uvicorn)"
+    )
+    max_connections: int = Field(
+        256, ge=1, description="open connections; more are answered 503 and closed at once"
+    )
+    max_head_bytes: int = Field(
+        16384, ge=1024, description="request line and headers in bytes (h11); more is 400"
+    )
+    response_buffer_bytes: int = Field(
+        32 * 2**20,
+        ge=0,
+        description="frames held for a client that is not reading yet; a Content-Length upload "
+        "whose frames could exceed it needs the header X-Spk2img-Duplex: 1 (413 without)",
+    )
+    memory_budget_bytes: int = Field(
+        1536 * 2**20,
+        ge=0,
+        description="memory all admitted reconstructions may use together (estimated per "
+        "request); past it a request gets 503 with Retry-After",
+    )
     retry_after_seconds: int = Field(1, ge=0, description="the Retry-After of a 503 in seconds")
     log_level: LogLevel = Field("info", description="uvicorn's log level")
 

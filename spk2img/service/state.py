@@ -38,6 +38,11 @@ class ServiceState:
         retry = {"Retry-After": str(self.settings.retry_after_seconds)}
         return RequestError(503, f"not ready: waiting for {self.waiting_for}", retry)
 
+    def busy(self) -> RequestError:
+        """The 503 of a service that could admit no request now."""
+        retry = {"Retry-After": str(self.settings.retry_after_seconds)}
+        return RequestError(503, "busy: no reconstruction could be admitted now", retry)
+
 
 def service_state(request: Request) -> ServiceState:
     return request.app.state.service

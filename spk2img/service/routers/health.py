@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 
+from ..reconstruction import JOB_BYTES
 from ..schemas import ErrorDetail, Status
 from ..state import Service
 
@@ -19,12 +20,21 @@ def healthz() -> Status:
 
 @router.get(
     "/readyz",
-    responses={503: {"model": ErrorDetail, "description": "loading or warming up the model"}},
+    responses={
+        503: {
+            "model": ErrorDetail,
+            "description": "loading or warming up the model, or busy: no request could be "
+            "admitted now",
+        }
+    },
 )
 def readyz(service: Service) -> Status:
-    """200 once the model is loaded and warmed, 503 (with ``Retry-After``) before."""
+    """200 once the model is loaded and warmed while a request could be admitted; 503 (with
+    ``Retry-After``) before, and while every place or the memory budget is taken."""
     if not service.ready:
         raise service.unavailable()
+    if service.pool.full(JOB_BYTES):
+        raise service.busy()
     return Status(status="ready")
 
 

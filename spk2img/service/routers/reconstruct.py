@@ -18,23 +18,30 @@ from spk2img.core.windows import CenterPlan
 
 from ..duplex import FramesResponse
 from ..errors import RequestError
-from ..reconstruction import StreamJob, check_upload_size
+from ..inference import InferencePool
+from ..reconstruction import StreamJob, check_upload_size, frame_record_bytes, job_memory
 from ..schemas import ErrorDetail, ReconstructQuery
 from ..settings import ServiceSettings
 from ..state import ReadyService, ServedModel
 
 BODY_TYPE = "application/octet-stream"
+DUPLEX_HEADER = "X-Spk2img-Duplex"
+"""``X-Spk2img-Duplex: 1``: the client reads the frames while it uploads (no response limit)."""
+RECORD_SLACK = 1024
+"""Bytes of the last record (``DONE`` or ``ERRO``) in a response-size bound."""
 
 router = APIRouter(prefix="/v1", tags=["reconstruct"])
 
 ERROR_SCHEMA = ErrorDetail.model_json_schema()  # inline: "model" would take the frames' media type
 _ERRORS = {
-    408: "the request took over max_request_seconds",
-    413: "the upload is over max_body_bytes or max_frames",
+    408: "the request took over max_request_seconds, or the upload stalled "
+    "(upload_read_timeout_seconds) or was slower than min_upload_bytes_per_second",
+    413: "the upload is over max_body_bytes or max_frames, or its frames are over "
+    "response_buffer_bytes without X-Spk2img-Duplex: 1",
     415: f"Content-Type is not {BODY_TYPE}",
     422: "bad parameters or sizes, an empty body, a length that is not a whole number of frames, "
-    "or a centre without a full window",
-    503: "not ready, or busy (see Retry-After)",
+    "a centre without a full window, or frames too large for the whole memory budget",
+    503: "not ready, or busy: every place or the memory budget taken (see Retry-After)",
 }
 
 
@@ -74,18 +81,51 @@ async def reconstruct(
         raise RequestError(422, f"quality is for method net, not {query.method}")
     plan = _plan(query, settings)
     length = request.headers.get("content-length")
+    response_bytes = settings.response_buffer_bytes  # unknown before a chunked upload ends
     if length is not None:
-        plan.centers_for(_frames_in(int(length), query, settings))
-    admission = service.pool.admit()
-    if admission is None:
+        centres = plan.centers_for(_frames_in(int(length), query, settings))
+        response_bytes = len(centres) * frame_record_bytes(query) + RECORD_SLACK
+        duplex = request.headers.get(DUPLEX_HEADER, "").strip() == "1"
+        if response_bytes > settings.response_buffer_bytes and not duplex:
+            raise RequestError(413, _over_buffer(response_bytes, settings))
+    cost = job_memory(query, settings, response_bytes)
+    if settings.memory_budget_bytes and cost > settings.memory_budget_bytes:
+        raise RequestError(
+            422,
+            f"{query.height}x{query.width} frames with method {query.method} need about "
+            f"{cost >> 20} MiB, over the whole memory budget of "
+            f"{settings.memory_budget_bytes >> 20} MiB (memory_budget_bytes): send smaller frames",
+        )
+    admission = service.pool.admit(cost)
+    if isinstance(admission, str):
+        service.metrics.refused.labels(admission).inc()
         raise RequestError(
             503,
-            f"busy: {service.pool.capacity} reconstructions in flight; try again later",
+            _refusal(admission, service.pool),
             {"Retry-After": str(settings.retry_after_seconds)},
         )
     net = query.method == "net"
     job = StreamJob(query, plan, settings, model if net else None, service.codec if net else None)
-    return FramesResponse(job, admission, settings.max_request_seconds, service.metrics)
+    return FramesResponse(job, admission, settings, service.metrics)
+
+
+def _refusal(reason: str, pool: InferencePool) -> str:
+    if reason == "busy":
+        return f"busy: {pool.capacity} reconstructions in flight; try again later"
+    return (
+        f"busy: {pool.reserved >> 20} MiB of the {pool.budget >> 20} MiB memory budget are "
+        "reserved by the reconstructions in flight; try again later"
+    )
+
+
+def _over_buffer(response_bytes: int, settings: ServiceSettings) -> str:
+    return (
+        f"the frames of this upload take up to {response_bytes} bytes, over the "
+        f"{settings.response_buffer_bytes}-byte response buffer (response_buffer_bytes) that "
+        "keeps a client that sends its whole body before reading from deadlocking: read the "
+        f"response while uploading and send '{DUPLEX_HEADER}: 1', or ask for fewer centres or "
+        "for uint8/png frames"
+    )
 
 
 def _check_content_type(content_type: str | None) -> None:
