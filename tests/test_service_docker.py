@@ -19,8 +19,13 @@ from spk2img.core.framing import DoneRecord
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCKERFILE = ROOT / "docker" / "Dockerfile"
+NGINX = ROOT / "docker" / "nginx.conf"
+COMPOSE = ROOT / "docker" / "compose.yaml"
 INSTALL_SECONDS = 540
 MODULES = ("torch", "onnxruntime", "fastapi")
+IDLE_RSS_BYTES = 400 * 2**20
+"""The service's footprint without requests, model loaded and warmed (measured: see
+docs/service.md, "Memory"), with room for the interpreter's growth."""
 
 
 def dockerfile_instructions(text: str) -> list[tuple[str, str]]:
@@ -55,7 +60,16 @@ def test_dockerfile_runtime_is_slim():
     health = dict(instructions)["HEALTHCHECK"]
     assert "/healthz" in health
     command = json.loads(dict(instructions)["CMD"])
-    assert command == ["spk2img", "serve", "--host", "0.0.0.0", "--port", "8000"]
+    assert command == [
+        "python",
+        "-m",
+        "spk2img.service",
+        "serve",
+        "--host",
+        "0.0.0.0",
+        "--port",
+        "8000",
+    ]
 
 
 @pytest.mark.slow
@@ -88,7 +102,8 @@ def test_dockerfile_install_serves_without_torch(tmp_path, standin_model):
     assert found.stdout.split() == ["False", "True", "True"], "onnxruntime and fastapi, no torch"
     assert not (venv / "lib" / "python3.11" / "site-packages" / "torch").exists()
 
-    with run_server(standin_model, program=[str(venv / "bin" / "spk2img")]) as server:
+    program = [str(venv / "bin" / "python"), "-m", "spk2img.service"]  # the image's CMD
+    with run_server(standin_model, program=program) as server:
         assert server.get("/healthz").json() == {"status": "ok"}
         _, body = stream_bytes(50, 8, 8)
         response = httpx.post(
@@ -99,3 +114,38 @@ def test_dockerfile_install_serves_without_torch(tmp_path, standin_model):
         )
         frames, done = parse_frames(response.content)
         assert isinstance(done, DoneRecord) and [f.center for f in frames] == [20, 29]
+
+
+def nginx_servers(text: str) -> dict[str, list[str]]:
+    """Each ``server`` block's ``listen`` port and the ``location`` lines it holds."""
+    servers: dict[str, list[str]] = {}
+    for block in text.split("server {")[1:]:
+        lines = [line.strip() for line in block.splitlines()]
+        port = next(line.split()[1].rstrip(";") for line in lines if line.startswith("listen"))
+        servers[port] = [
+            line.removesuffix("{").strip() for line in lines if line.startswith("location")
+        ]
+    return servers
+
+
+def test_nginx_publishes_only_the_api_and_health():
+    servers = nginx_servers(NGINX.read_text())
+    assert servers["80"] == [
+        "location /v1/",
+        "location = /healthz",
+        "location = /readyz",
+        "location /",
+    ]
+    assert "metrics" in servers["8081"][0] and "docs" in servers["8081"][0]
+    compose = COMPOSE.read_text()
+    assert '"8000:80"' in compose and "8081:" not in compose  # 8081 is never published
+    public_catch_all = NGINX.read_text().split("listen 80;")[1].split("server {")[0]
+    assert "return 404" in public_catch_all
+
+
+def test_compose_limits_match_the_memory_budget():
+    """The container's memory limit holds the service's budget plus its idle footprint."""
+    compose = COMPOSE.read_text()
+    limit = int(compose.split("memory: ")[1].split("m")[0]) * 2**20
+    budget = int(compose.split("SPK2IMG_MEMORY_BUDGET_BYTES: ")[1].split()[0].strip('"'))
+    assert budget + IDLE_RSS_BYTES <= limit

@@ -367,3 +367,15 @@ def test_send_then_read_of_the_largest_body_gets_every_frame(service):
     refused = httpx.post(service.url + target, content=body, headers=OCTET, timeout=60)
     assert refused.status_code == 413 and "response_buffer_bytes" in refused.json()["detail"]
     print(f"\nsend-then-read, 3 MB body: {len(answer.content)} bytes of frames in {elapsed:.1f} s")
+
+
+def test_the_python_client_reads_while_sending_so_large_responses_pass(guarded):
+    """spk2img.clients sends X-Spk2img-Duplex: 1: 1960 frames (2 MB, ten times the 200 KB
+    response buffer) of a Content-Length upload all arrive."""
+    from spk2img.clients import Client
+
+    _wait_for(lambda: _idle(guarded))
+    spikes, _ = stream_bytes(2000, H, W, seed=5)
+    with Client(guarded.url) as client:
+        frames = list(client.reconstruct(spikes, stride=1, method="tfp", window=41))
+    assert [k for k, _ in frames] == list(range(20, 1980))

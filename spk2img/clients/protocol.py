@@ -35,6 +35,9 @@ intensity in [0, 1] for ``format="float32"``, uint8 display values for ``"uint8"
 (read-only: a view of the response; copy it to change it)."""
 
 USER_AGENT = f"spk2img-client/{__version__}"
+DUPLEX_HEADER = "X-Spk2img-Duplex"
+"""Sent as ``X-Spk2img-Duplex: 1``: this client reads frames while it uploads, so the service
+need not refuse a large response that a send-then-read client could deadlock on."""
 ERROR_BODY_BYTES = 1 << 14
 """How much of an error response's body is kept for its message."""
 
@@ -131,6 +134,7 @@ class Exchange:
             ("Accept", MEDIA_TYPE),
             ("Content-Type", "application/octet-stream"),
             ("Connection", "close"),
+            (DUPLEX_HEADER, "1"),  # it reads while it sends: no response-buffer limit
             *length,
         ]
         return self._send(h11.Request(method="POST", target=self._target, headers=headers))
