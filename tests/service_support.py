@@ -262,7 +262,7 @@ def run_app_server(model: Path, **settings) -> Iterator[AppServer]:
             time.sleep(0.05)
         yield running
     finally:
-        server.should_exit = True
+        server.should_exit = server.force_exit = True  # no grace for the tests' leftovers
         thread.join(15)
 
 
