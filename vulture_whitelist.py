@@ -42,3 +42,7 @@ _.__dir__
 # asyncio and uvicorn call these (spk2img/service/server.py's protocol)
 _.eof_received  # asyncio.Protocol: the client shut down its write side (half-close)
 _.keep_alive  # uvicorn's RequestResponseCycle: close the connection after the response
+
+# used by scripts/real_capture_quality.py (scripts are not scanned) and the tests
+_.niqe  # spk2img.core.niqe
+_.display_grey  # spk2img.core.niqe

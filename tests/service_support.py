@@ -45,12 +45,11 @@ class Server:
 
 @contextmanager
 def run_server(
-    model: Path, *flags: str, program: Sequence[str] = (sys.executable, "-m", "spk2img.service")
+    model: Path, *flags: str, program: Sequence[str] = (sys.executable, "-m", "spk2img")
 ) -> Iterator[Server]:
     """Run ``PROGRAM serve --model MODEL FLAGS…`` on a free port; wait until ``/readyz`` is 200.
 
-    The default program, ``python -m spk2img.service``, is ``spk2img serve`` with the server's
-    connection limits (header timeout, connection cap, half-close: spk2img.service.server)."""
+    The default program is ``spk2img serve`` (``python -m spk2img``)."""
     port = free_port()
     cmd = [*program, "serve", "--model", str(model), "--port", str(port)]
     cmd += ["--log-level", "warning", *flags]

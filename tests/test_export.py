@@ -16,6 +16,7 @@ from spk2img.core.block_model import block_graph_paths
 from spk2img.core.errors import InputError
 from spk2img.core.onnx_backend import OnnxModel
 from spk2img.export import hard_cases
+from spk2img.export.block_graphs import block_parity
 from spk2img.export.metadata import weights_sha256
 from spk2img.export.onnx_export import (
     ExportConfig,
@@ -190,6 +191,17 @@ def test_paper_random_weights_export_and_verify(tmp_path):
     assert OnnxModel(result.path, 1).metadata["weights_sha256"] == weights_sha256(
         source.model.state_dict()
     )
+
+
+def test_lite_exports_at_any_size_and_streams_its_blocks(tmp_path):
+    """``lite`` (features at half resolution, pixel-shuffle head): sizes that are not multiples
+    of its 8 px, and the block graphs streamed against the one-shot network."""
+    source = random_source("lite", seed=0)
+    result = export_verified(source, tmp_path / "lite.onnx", EXAMPLE)
+    cases = hard_cases.size_cases(((17, 23), (9, 30)), threads=(1,))
+    report = verify_onnx(result.path, source.model, cases)
+    assert result.parity.passed and report.passed, report.table()
+    assert block_parity(result.path, source.model) <= ATOL
 
 
 def test_onnx_backend_agrees_with_torch_predictor(tiny_export, tiny_checkpoint):

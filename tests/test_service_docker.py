@@ -60,16 +60,7 @@ def test_dockerfile_runtime_is_slim():
     health = dict(instructions)["HEALTHCHECK"]
     assert "/healthz" in health
     command = json.loads(dict(instructions)["CMD"])
-    assert command == [
-        "python",
-        "-m",
-        "spk2img.service",
-        "serve",
-        "--host",
-        "0.0.0.0",
-        "--port",
-        "8000",
-    ]
+    assert command == ["spk2img", "serve", "--host", "0.0.0.0", "--port", "8000"]
 
 
 @pytest.mark.slow
@@ -102,7 +93,7 @@ def test_dockerfile_install_serves_without_torch(tmp_path, standin_model):
     assert found.stdout.split() == ["False", "True", "True"], "onnxruntime and fastapi, no torch"
     assert not (venv / "lib" / "python3.11" / "site-packages" / "torch").exists()
 
-    program = [str(venv / "bin" / "python"), "-m", "spk2img.service"]  # the image's CMD
+    program = [str(venv / "bin" / "spk2img")]  # the image's CMD
     with run_server(standin_model, program=program) as server:
         assert server.get("/healthz").json() == {"status": "ok"}
         _, body = stream_bytes(50, 8, 8)

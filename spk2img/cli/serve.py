@@ -42,21 +42,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import uvicorn  # the serve extra (spk2img.cli.extras checked it is there)
-
-    from spk2img.service.app import create_app
+    from spk2img.service.server import run as serve  # the serve extra (checked by cli.extras)
 
     settings = settings_from_args(args)
     if not settings.model_path.is_file():
         hint = DEFAULT_MODEL_HINT if settings.model is None else ""
         raise InputError(f"no model file at {settings.model_path}{hint}")
-    uvicorn.run(
-        create_app(settings),
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        timeout_graceful_shutdown=5,
-    )
+    serve(settings)
     return 0
 
 

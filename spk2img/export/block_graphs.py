@@ -30,7 +30,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import onnx
 import torch
 from torch.export import Dim
 
@@ -41,7 +40,14 @@ from spk2img.core.windows import NET_WINDOW, CenterPlan
 from spk2img.model.block_split import AlignFuseHead, BlockEncoder, repeated_code, role_blocks
 from spk2img.model.network import Spk2ImgNet
 
-from .onnx_export import ExportConfig, ExportSource, GraphIO, finish_graph, trace_to_onnx
+from .onnx_export import (
+    ExportConfig,
+    ExportSource,
+    GraphIO,
+    finish_graph,
+    name_dims,
+    trace_to_onnx,
+)
 
 BLOCK_INPUT = "block"
 IMAGE_OUTPUT = "image"
@@ -71,7 +77,7 @@ def export_block_graphs(
     encoder_io = GraphIO([BLOCK_INPUT], names, {BLOCK_INPUT: {0: "batch", 2: "height", 3: "width"}})
     encoder = trace_to_onnx(BlockEncoder(model), (block,), encoder_io, config)
     encoder_expected = {BLOCK_INPUT: ["batch", cfg.block_frames, "height", "width"], **code_dims}
-    _name_dims(list(encoder.graph.output), encoder_expected)
+    name_dims(list(encoder.graph.output), encoder_expected)
     encoder_meta = {**source.metadata, "part": "encoder"}
     finish_graph(encoder, encoder_meta, config, paths["encoder"], encoder_expected)
 
@@ -90,18 +96,9 @@ def export_block_graphs(
         name: [dims[0], *([] if stacked[role] is None else [stacked[role]]), *dims[1:]]
         for (name, dims), role in zip(code_dims.items(), roles, strict=True)
     } | {IMAGE_OUTPUT: ["batch", 1, "padded_height", "padded_width"]}
-    _name_dims([*head.graph.input, *head.graph.output], head_expected)
+    name_dims([*head.graph.input, *head.graph.output], head_expected)
     finish_graph(head, {**source.metadata, "part": "head"}, config, paths["head"], head_expected)
     return paths
-
-
-def _name_dims(values: list[onnx.ValueInfoProto], expected: dict[str, list[str | int]]) -> None:
-    """Give the symbolic dims of ``values`` the names of ``expected`` (the exporter's are
-    expressions of the input's, such as ``4*ceil(s1/4)``), so the graph documents its contract."""
-    for value in values:
-        for dim, want in zip(value.type.tensor_type.shape.dim, expected[value.name], strict=True):
-            if isinstance(want, str):
-                dim.dim_param = want
 
 
 def block_parity(

@@ -159,6 +159,7 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
         GraphIO([INPUT_NAME], [OUTPUT_NAME], {INPUT_NAME: {0: "batch", 2: "height", 3: "width"}}),
         config,
     )
+    name_dims(list(model.graph.output), ONE_SHOT_IO)  # the crop back to H x W
     return finish_graph(model, source.metadata, config, out, ONE_SHOT_IO)
 
 
@@ -215,6 +216,17 @@ def trace_to_onnx(
     finally:
         registration_log.setLevel(previous_level)
     return program.model_proto
+
+
+def name_dims(values: list[onnx.ValueInfoProto], expected: dict[str, list[str | int]]) -> None:
+    """Give the symbolic dims of ``values`` the names of ``expected``. The exporter's are
+    expressions of the input's, such as ``4*ceil(s1/4)`` or, after a crop back to the input's
+    size, ``Min(height, 2*((height + ...)//2))``; named, the graph documents its contract (the
+    parity checks run it at many sizes)."""
+    for value in values:
+        for dim, want in zip(value.type.tensor_type.shape.dim, expected[value.name], strict=True):
+            if isinstance(want, str):
+                dim.dim_param = want
 
 
 def finish_graph(
