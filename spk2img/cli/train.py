@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 
 from spk2img.cli.extras import needs_extra
 from spk2img.core.errors import InputError
@@ -50,7 +51,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="DIR",
         help="a folder of photographs and clips to train on (repeatable)",
     )
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bar (there is none either when stderr is not a terminal)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
     values = {
         f.name: getattr(args, f.name) for f in fields if getattr(args, f.name, None) is not None
     }
-    if args.no_progress:
+    if args.no_progress or not sys.stderr.isatty():
         values["progress"] = False
     try:
         cfg = config_cls(**values)
