@@ -19,7 +19,7 @@ from spk2img.core.windows import NET_WINDOW
 from .errors import install_error_handlers
 from .inference import InferencePool
 from .metrics import MetricsMiddleware
-from .routers import health, models, reconstruct
+from .routers import health, models, reconstruct, viewer
 from .settings import ServiceSettings
 from .state import ServiceState
 
@@ -41,7 +41,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app.state.service = state
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=state.metrics)
-    for router in (reconstruct.router, models.router, health.router):
+    for router in (reconstruct.router, models.router, health.router, viewer.router):
         app.include_router(router)
     state.metrics.set_paths(tuple(getattr(route, "path", "") for route in app.routes))
     return app
