@@ -8,11 +8,12 @@
   const NET_WINDOW = 41;
   // A browser uploads the whole body before it reads the answer, so the service holds the frames
   // for it: up to response_buffer_bytes (32 MiB by default) for a Content-Length upload, else 413.
-  // The page asks for at most this many bytes of frames a request and splits larger plans.
-  const RESPONSE_BUDGET = 16 * 1024 * 1024;
+  // The page asks for at most this many bytes of frames a request and splits larger plans;
+  // ?budget=BYTES in the page's URL sets it (a service run with a smaller buffer).
+  const RESPONSE_BUDGET = Number(new URLSearchParams(location.search).get("budget")) || 16 * 1024 * 1024;
   const FRAME_RECORD_OVERHEAD = 28; // tag, length, centre, height, width, format
   const MAX_CENTRES_PER_REQUEST = 1000; // keeps a centres= list far under the 8 KiB query limit
-  const TFI_CENTRES_PER_REQUEST = 32; // TFI holds its centres until every pixel fires again
+  const TFI_CENTRES_PER_REQUEST = 16; // TFI holds its centres until every pixel fires again
   const BUSY_RETRIES = 10;
   const FILMSTRIP_THUMB = 100; // px a thumbnail takes in the strip, gap included
   const YIELD_MS = 30; // long loops give the page back this often
@@ -294,6 +295,7 @@
       state.source = { blob: file, name: file.name, stem, kind: "dat", shape: null };
       ui.height.disabled = ui.width.disabled = false;
       describeSource();
+      updateButtons();
       return;
     }
     state.loading = true;

@@ -1,0 +1,209 @@
+"""The viewer page at ``/`` in a real headless browser (Playwright driving Debian's Chromium,
+``/usr/bin/chromium``; ``.ci/run`` installs it): upload a stream through the page's file input,
+wait for the frames, compare the pixels the page shows with the HTTP API's frames, and see the
+service's error message on the page."""
+
+from __future__ import annotations
+
+import io
+import shutil
+import zipfile
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+from service_support import OCTET, parse_frames, stream_bytes
+
+CHROMIUM = Path("/usr/bin/chromium")
+H, W, T = 32, 48, 200
+SPIKES, BODY = stream_bytes(T, H, W, seed=7)
+WAIT_MS = 20_000
+
+pytestmark = [
+    pytest.mark.skipif(
+        not CHROMIUM.is_file() and shutil.which("chromium") is None,
+        reason="no Chromium at /usr/bin/chromium: `apt-get install chromium` (.ci/run does)",
+    ),
+]
+sync_api = pytest.importorskip(
+    "playwright.sync_api", reason="playwright (the dev extra) is not installed"
+)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    executable = CHROMIUM if CHROMIUM.is_file() else Path(shutil.which("chromium"))
+    with sync_api.sync_playwright() as playwright:
+        # never Playwright's own browser download: the machine has Debian's Chromium
+        browser = playwright.chromium.launch(executable_path=str(executable), args=["--no-sandbox"])
+        yield browser
+        browser.close()
+
+
+@pytest.fixture
+def page(browser, service):
+    context = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.goto(service.url + "/")
+    page.wait_for_selector("#service-status:has-text('ready')", timeout=WAIT_MS)
+    yield page
+    context.close()
+    assert not errors, errors  # no uncaught exception in the page's script
+
+
+def api_frames(service, query: str, body: bytes = BODY) -> dict[int, np.ndarray]:
+    """The uint8 frames the HTTP API answers, by centre."""
+    response = httpx.post(
+        f"{service.url}/v1/reconstruct?{query}&format=uint8&gamma=2.2",
+        content=body,
+        headers=OCTET,
+        timeout=30,
+    )
+    assert response.status_code == 200, response.text
+    frames, _ = parse_frames(response.content)
+    return {frame.center: frame.image for frame in frames}
+
+
+def shown(page, canvas: str) -> tuple[int, np.ndarray]:
+    """The centre a canvas shows and its pixels, after the page's next draw (grey: the red
+    channel, checked equal to the green and blue ones)."""
+    centre, width, height, rgba = page.evaluate(
+        """async id => {
+            await new Promise(resolve => requestAnimationFrame(resolve));  // the page draws in one
+            const c = document.getElementById(id);
+            const d = c.getContext("2d").getImageData(0, 0, c.width, c.height).data;
+            return [Number(c.dataset.centre), c.width, c.height, Array.from(d)];
+        }""",
+        canvas,
+    )
+    pixels = np.array(rgba, np.uint8).reshape(height, width, 4)
+    assert (pixels[..., 0] == pixels[..., 1]).all() and (pixels[..., 0] == pixels[..., 2]).all()
+    assert (pixels[..., 3] == 255).all()
+    return centre, pixels[..., 0]
+
+
+def choose(page, path: Path, **fields: str) -> None:
+    page.set_input_files("#file", str(path))
+    page.wait_for_function("!document.getElementById('run').disabled", timeout=WAIT_MS)
+    for name, value in fields.items():
+        selector = f"#{name}"
+        if page.eval_on_selector(selector, "e => e.tagName") == "SELECT":
+            page.select_option(selector, value)
+        else:
+            page.fill(selector, value)
+
+
+def run_and_wait(page) -> None:
+    page.click("#run")
+    page.wait_for_function(
+        "document.getElementById('status').textContent.startsWith('done')"
+        " || !document.getElementById('error').hidden",
+        timeout=WAIT_MS,
+    )
+    assert page.is_hidden("#error"), page.inner_text("#error")
+
+
+def test_dat_upload_two_methods_pixels_and_downloads(page, service, tmp_path):
+    path = tmp_path / "rec.dat"
+    path.write_bytes(BODY)
+    choose(page, path, height=str(H), width=str(W), method="net", stride="10", compare="tfp")
+    assert "200 frames of 32×48" in page.inner_text("#file-info")
+    run_and_wait(page)
+    net = api_frames(service, f"height={H}&width={W}&method=net&quality=best&stride=10")
+    tfp = api_frames(service, f"height={H}&width={W}&method=tfp&window=41&stride=10")
+    assert sorted(net) == list(range(20, 180, 10))
+    assert page.inner_text("#frame-label") == f"frame {len(net)} of {len(net)} · centre 170"
+    centre, pixels = shown(page, "canvas-a")
+    assert centre == 170
+    np.testing.assert_array_equal(pixels, net[centre])
+    page.click("#prev")  # step back: both panes follow
+    page.click("#prev")
+    centre, pixels = shown(page, "canvas-a")
+    assert centre == 150
+    np.testing.assert_array_equal(pixels, net[centre])
+    centre_b, pixels_b = shown(page, "canvas-b")
+    assert centre_b == 150
+    np.testing.assert_array_equal(pixels_b, tfp[centre])
+    page.fill("#slider", "0")
+    page.get_by_text("40", exact=True).click()  # a filmstrip thumbnail
+    assert shown(page, "canvas-a")[0] == 40
+    assert "gamma 2.2" in page.inner_text("#gamma-note")
+
+    with page.expect_download() as download:
+        page.click("#download-png")
+    with zipfile.ZipFile(download.value.path()) as archive:
+        names = archive.namelist()
+        assert len(names) == 2 * len(net) and "net-best/000020.png" in names
+        for centre, image in tfp.items():
+            png = Image.open(io.BytesIO(archive.read(f"tfp/{centre:06d}.png")))
+            assert png.mode == "L"
+            np.testing.assert_array_equal(np.asarray(png), image)
+    with page.expect_download() as download:
+        page.click("#download-npz")
+    with np.load(download.value.path()) as npz:
+        assert npz["centers"].tolist() == sorted(net) and npz["centers"].dtype == np.int64
+        np.testing.assert_array_equal(npz["frames"], np.stack([net[k] for k in sorted(net)]))
+        np.testing.assert_array_equal(npz["frames_b"][0], tfp[20])
+        assert float(npz["gamma"]) == 2.2
+
+
+def test_npy_upload_is_packed_like_a_dat(page, service, tmp_path):
+    path = tmp_path / "rec.npy"
+    np.save(path, SPIKES.astype(bool))
+    choose(page, path, method="tfi", window="21")
+    page.check("#use-centers")
+    page.fill("#centers", "15,60,150")
+    assert page.input_value("#height") == str(H) and page.input_value("#width") == str(W)
+    run_and_wait(page)
+    tfi = api_frames(service, f"height={H}&width={W}&method=tfi&window=21&centers=15,60,150")
+    centre, pixels = shown(page, "canvas-a")
+    assert centre == 150
+    np.testing.assert_array_equal(pixels, tfi[150])
+
+
+def test_a_long_plan_is_split_into_requests(browser, service, tmp_path):
+    """With a response budget of 12 frames a request (``?budget=``), stride 3 over 200 frames
+    (54 frames) takes 5 requests, each uploading only the frames its windows need: the page
+    shows the same frames as one request to the API."""
+    path = tmp_path / "rec.dat"
+    path.write_bytes(BODY)
+    context = browser.new_context()
+    page = context.new_page()
+    page.goto(f"{service.url}/?budget={12 * (28 + H * W)}")
+    requests: list[str] = []
+    page.on("request", lambda request: requests.append(request.url))
+    choose(page, path, height=str(H), width=str(W), method="tfp", stride="3")
+    run_and_wait(page)
+    whole = api_frames(service, f"height={H}&width={W}&method=tfp&window=41&stride=3")
+    assert len([url for url in requests if "/v1/reconstruct" in url]) == 5
+    label = f"frame {len(whole)} of {len(whole)} · centre {max(whole)}"
+    assert len(whole) == 54 and page.inner_text("#frame-label") == label
+    for step in range(len(whole) - 1, -1, -13):
+        page.fill("#slider", str(step))
+        centre, pixels = shown(page, "canvas-a")
+        assert centre == sorted(whole)[step]
+        np.testing.assert_array_equal(pixels, whole[centre])
+    context.close()
+
+
+def test_the_services_error_appears_on_the_page(page, service, tmp_path):
+    path = tmp_path / "rec.dat"
+    path.write_bytes(BODY)
+    choose(page, path, height=str(H + 1), width=str(W), method="tfp", stride="10")
+    assert "not a whole number of 33×48 frames" in page.inner_text("#file-info")
+    expected = httpx.post(
+        f"{service.url}/v1/reconstruct?height={H + 1}&width={W}&stride=10&method=tfp",
+        content=BODY,
+        headers=OCTET,
+    )
+    assert expected.status_code == 422
+    page.click("#run")
+    page.wait_for_selector("#error:not([hidden])", timeout=WAIT_MS)
+    message = page.inner_text("#error")
+    assert message == f"The service answered 422: {expected.json()['detail']}"
+    assert "not a whole number of 33x48 frames" in message
+    assert page.is_enabled("#run")  # ready for the next try
