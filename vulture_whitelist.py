@@ -46,3 +46,7 @@ _.keep_alive  # uvicorn's RequestResponseCycle: close the connection after the r
 # used by scripts/real_capture_quality.py (scripts are not scanned) and the tests
 _.niqe  # spk2img.core.niqe
 _.display_grey  # spk2img.core.niqe
+
+# FastAPI routes of the viewer (spk2img/service/routers/viewer.py), registered by their decorators
+_.page
+_.static_file
