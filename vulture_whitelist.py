@@ -50,3 +50,6 @@ _.display_grey  # spk2img.core.niqe
 # FastAPI routes of the viewer (spk2img/service/routers/viewer.py), registered by their decorators
 _.page
 _.static_file
+
+# pydantic field validator of ServiceSettings, called by pydantic
+_._device_runs_here  # spk2img.service.settings

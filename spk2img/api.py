@@ -116,6 +116,11 @@ class Reconstructor:
         backend: ``"onnx"`` (onnxruntime; the serve extra) or ``"torch"`` (the train extra).
         checkpoint: the PyTorch checkpoint for ``backend="torch"`` (default: the shipped one).
         threads: inference threads (None: the runtime's default).
+        device: where onnxruntime runs the network: ``"cpu"``, ``"cuda"``, ``"tensorrt"`` or
+            ``"auto"`` (CUDA when it can run here, else the CPU; docs/gpu.md). A GPU device
+            onnxruntime cannot run raises :class:`~spk2img.core.onnx_backend.DeviceError`.
+        batch: windows per network call when each window runs whole (the one-shot graph's
+            batch axis is dynamic; more than 1 pays on a GPU).
         block_reuse: encode each 13-frame block once when the centres share blocks (a stride
             that is a multiple of 7); the frames equal those of whole windows to float rounding.
     """
@@ -131,15 +136,22 @@ class Reconstructor:
         checkpoint: str | Path | None = None,
         threads: int | None = None,
         block_reuse: bool = True,
+        device: str = "cpu",
+        batch: int = 1,
     ):
         self.method, self.quality = check_method(method), check_quality(quality)
         self.window = NET_WINDOW if method == "net" else window
         if backend not in ("onnx", "torch"):
             raise ValueError(f"unknown backend {backend!r}: choose onnx or torch")
+        if backend == "torch" and device != "cpu":
+            raise ValueError(f"device {device!r} is for the onnx backend (torch runs on the CPU)")
+        if batch < 1:
+            raise ValueError(f"batch must be >= 1, got {batch}")
+        self.batch = batch
         self.predict = None
         self.codec = None
         if method == "net" and quality != "fast":
-            self.predict = _load_predictor(model, backend, checkpoint, threads)
+            self.predict = _load_predictor(model, backend, checkpoint, threads, device)
             if block_reuse:
                 self.codec = _load_codec(self.predict, backend, threads)
         self.last_stream: StreamingReconstructor | None = None
@@ -170,7 +182,14 @@ class Reconstructor:
         plan = self._plan(centers, stride)
         plan.centers_for(n_frames)  # a centre without a full window: fail before any work
         stream = build_reconstructor(
-            self.method, height, width, plan, self.predict, codec=self.codec, quality=self.quality
+            self.method,
+            height,
+            width,
+            plan,
+            self.predict,
+            self.batch,
+            codec=self.codec,
+            quality=self.quality,
         )
         self.last_stream = stream
         return _run(stream, spikes, progress)
@@ -263,7 +282,7 @@ def _run(
     yield from stream.close()
 
 
-def _load_predictor(model, backend: str, checkpoint, threads: int | None):
+def _load_predictor(model, backend: str, checkpoint, threads: int | None, device: str = "cpu"):
     extra = "train" if backend == "torch" else "serve"
     try:
         if backend == "torch":
@@ -272,7 +291,7 @@ def _load_predictor(model, backend: str, checkpoint, threads: int | None):
             return TorchPredictor(checkpoint, threads=threads)
         from spk2img.core.onnx_backend import OnnxModel
 
-        return OnnxModel(model, threads=threads)
+        return OnnxModel(model, threads=threads, device=device)
     except ModuleNotFoundError as exc:  # the same words as the CLI's (spk2img.cli.extras)
         raise ModuleNotFoundError(
             f"method 'net' with backend {backend!r} needs the {extra} extra (not installed: "
@@ -291,4 +310,4 @@ def _load_codec(predict, backend: str, threads: int | None):
 
     if not all(path.is_file() for path in block_graph_paths(predict.path).values()):
         return None
-    return OnnxBlockCodec(predict.path, threads=threads)
+    return OnnxBlockCodec(predict.path, threads=threads, device=predict.device)

@@ -13,6 +13,7 @@ from spk2img.core.adaptive import QUALITIES, BalancedStream
 from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.errors import InputError
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
+from spk2img.core.onnx_backend import DEVICES
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
 from spk2img.core.stream import collect
 
@@ -51,6 +52,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--checkpoint", type=Path, help="torch checkpoint for --backend torch")
     p.add_argument("--threads", type=int, default=None, help="inference threads")
     p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default=None,
+        help="where onnxruntime runs the network: cpu (default), cuda, tensorrt (the gpu extra, "
+        "docs/gpu.md) or auto (cuda when it can run here, else cpu; says which); a GPU device "
+        "onnxruntime cannot run here is an error, never a silent fallback",
+    )
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=1,
+        help="windows per network call when windows run whole (--no-block-reuse, or a stride "
+        "that shares no blocks); more than 1 pays on a GPU (default 1)",
+    )
+    p.add_argument(
         "--no-block-reuse",
         action="store_true",
         help="run the network on every window whole, even when centres share 13-frame blocks "
@@ -67,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--quality is for --method net, not {args.method}")
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
+    if args.batch < 1:
+        raise InputError(f"--batch must be >= 1, got {args.batch}")
+    if args.device not in (None, "cpu") and (args.backend != "onnx" or args.method != "net"):
+        raise InputError(f"--device {args.device} is for --method net with --backend onnx")
     how = ""
     if args.url:
         args.no_progress = not show_progress(args)  # the client's bar follows the same rule
@@ -97,7 +117,12 @@ def _reconstruct_local(args: argparse.Namespace, stride: int | None):
         checkpoint=args.checkpoint,
         threads=args.threads,
         block_reuse=not args.no_block_reuse,
+        device=args.device or "cpu",
+        batch=args.batch,
     )
+    note = getattr(recon.predict, "device_note", "")
+    if note:
+        say(args, note)
     n_out = len(recon.centers_for(len(spikes), args.centers, stride))
     pairs = []
     with progress_bar(args, total=len(spikes)) as bar:
@@ -110,7 +135,13 @@ def _reconstruct_local(args: argparse.Namespace, stride: int | None):
             pairs.append(pair)
             bar.set_postfix_str(f"{len(pairs)}/{n_out} out", refresh=False)
     frames, centers = collect(pairs, *spikes.shape[1:])
-    return frames, centers, compute_note(recon.last_stream)
+    return frames, centers, compute_note(recon.last_stream) + device_note(recon.predict)
+
+
+def device_note(predict) -> str:
+    """Where the network ran, for the closing message, when it was not the CPU."""
+    provider = getattr(predict, "provider", "CPUExecutionProvider")
+    return "" if provider == "CPUExecutionProvider" else f" on {predict.device} ({provider})"
 
 
 def compute_note(recon) -> str:
@@ -124,8 +155,10 @@ def compute_note(recon) -> str:
 
 
 def _reconstruct_remote(args: argparse.Namespace, stride: int | None):
-    if args.model or args.checkpoint or args.backend != "onnx":
-        raise InputError("--url runs the service's own model: drop --model/--checkpoint/--backend")
+    if args.model or args.checkpoint or args.backend != "onnx" or args.device:
+        raise InputError(
+            "--url runs the service's own model: drop --model/--checkpoint/--backend/--device"
+        )
     from spk2img.clients.remote import reconstruct_file_remote  # the client extra
 
     return reconstruct_file_remote(args, stride)

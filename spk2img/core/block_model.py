@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from .errors import InputError
-from .onnx_backend import cpu_session, default_model_path
+from .onnx_backend import create_session, default_model_path, run_session
 
 PART_FILES = {"encoder": ".encoder.onnx", "head": ".head.onnx"}
 """Suffixes that replace ``.onnx`` of the one-shot graph for its two parts."""
@@ -67,15 +67,29 @@ class OnnxBlockCodec:
         model: the one-shot graph (default: the shipped model); its parts are found by
             :func:`block_graph_paths`.
         threads: onnxruntime intra-op threads of each session (None: onnxruntime's default).
+        device: where both graphs run (:data:`~spk2img.core.onnx_backend.DEVICES`).
+        io_binding: run through onnxruntime's IO binding (default: on a GPU).
 
     Raises :class:`InputError` when a part is missing or the parts hold other weights than
     each other (their ``weights_sha256`` metadata differ).
     """
 
-    def __init__(self, model: str | Path | None = None, threads: int | None = None):
+    def __init__(
+        self,
+        model: str | Path | None = None,
+        threads: int | None = None,
+        device: str = "cpu",
+        io_binding: bool | None = None,
+    ):
         paths = block_graph_paths(model if model is not None else default_model_path())
-        self.encoder = cpu_session(paths["encoder"], threads)
-        self.head_session = cpu_session(paths["head"], threads)
+        self.parts = {"encoder": create_session(paths["encoder"], threads, device)}
+        self.device = self.parts["encoder"].device
+        """The concrete device both graphs run on."""
+        self.parts["head"] = create_session(paths["head"], threads, self.device)
+        self.encoder = self.parts["encoder"].session
+        self.head_session = self.parts["head"].session
+        self.image_name = self.head_session.get_outputs()[0].name
+        self.io_binding = self.device != "cpu" if io_binding is None else io_binding
         sessions = (self.encoder, self.head_session)
         meta = [dict(session.get_modelmeta().custom_metadata_map) for session in sessions]
         if meta[0].get("weights_sha256") != meta[1].get("weights_sha256"):
@@ -91,13 +105,13 @@ class OnnxBlockCodec:
         self.names = code_names(int(config["pyramid_levels"]))
 
     def encode(self, block: np.ndarray) -> BlockCode:
-        outputs = self.encoder.run(
-            self.names, {"block": np.ascontiguousarray(block[None], np.float32)}
-        )
+        feeds = {"block": np.ascontiguousarray(block[None], np.float32)}
+        outputs = run_session(self.parts["encoder"], feeds, self.names, self.io_binding)
         return tuple(out[0] for out in outputs)
 
     def head(self, codes: Sequence[BlockCode], height: int, width: int) -> np.ndarray:
-        (image,) = self.head_session.run(None, head_inputs(codes, self.names, self.num_blocks))
+        feeds = head_inputs(codes, self.names, self.num_blocks)
+        (image,) = run_session(self.parts["head"], feeds, [self.image_name], self.io_binding)
         return image[0, 0, :height, :width]
 
 

@@ -1,7 +1,29 @@
-"""Running an exported Spk2ImgNet ONNX graph with onnxruntime (no torch needed)."""
+"""Running an exported Spk2ImgNet ONNX graph with onnxruntime (no torch needed).
+
+:func:`create_session` is the one place that turns a *device* into onnxruntime execution
+providers and session options; the one-shot model (:class:`OnnxModel`), the block encoder and
+head (:class:`~spk2img.core.block_model.OnnxBlockCodec`), the service and the benchmark all
+create their sessions through it.
+
+Devices (docs/gpu.md):
+
+- ``cpu``: onnxruntime's CPU provider (the ``onnxruntime`` package, the serve extra).
+- ``cuda``: the CUDA provider (the ``onnxruntime-gpu`` package, the gpu extra), CPU for the
+  operators CUDA lacks.
+- ``tensorrt``: the TensorRT provider, then CUDA, then CPU (onnxruntime-gpu with TensorRT's
+  libraries installed); engines are cached under :data:`TRT_CACHE`.
+- ``auto``: ``cuda`` when onnxruntime can run it here, else ``cpu``; the choice and why are
+  in :attr:`Session.note`.
+
+Asking for ``cuda`` or ``tensorrt`` where onnxruntime cannot run that provider raises
+:class:`DeviceError` (an :class:`InputError`: exit code 2 from the CLI) with one line; nothing
+falls back to the CPU silently.
+"""
 
 from __future__ import annotations
 
+import os
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
@@ -11,46 +33,237 @@ from .errors import InputError
 
 DEFAULT_MODEL = "spk2img-default.onnx"
 
+DEVICES = ("cpu", "cuda", "tensorrt", "auto")
+"""What ``--device`` accepts."""
+PROVIDERS = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+}
+"""The onnxruntime provider each concrete device runs on first."""
+TRT_CACHE = Path(os.environ.get("SPK2IMG_TRT_CACHE", Path.home() / ".cache" / "spk2img" / "trt"))
+"""Where TensorRT engines are cached between runs (``SPK2IMG_TRT_CACHE``)."""
+GPU_INSTALL = 'pip uninstall -y onnxruntime && pip install -e ".[gpu]"'
+"""How to swap the CPU build of onnxruntime for the GPU one (they exclude each other)."""
+
+
+class DeviceError(InputError):
+    """A device this onnxruntime cannot run here (no such provider, or it failed to start)."""
+
 
 def default_model_path() -> Path:
     """The shipped default model's ONNX file (inside the installed package)."""
     return Path(str(resources.files("spk2img") / "assets" / "models" / DEFAULT_MODEL))
 
 
-class OnnxModel:
-    """An ONNX reconstruction graph: ``(B, 41, H, W)`` 0/1 float32 -> ``(B, H, W)`` float32.
-
-    ``threads`` sets onnxruntime's intra-op threads (None: onnxruntime's default).
-    ``metadata`` holds the graph's ``metadata_props`` (name, version, config, sha256 …).
-    """
-
-    def __init__(self, path: str | Path | None = None, threads: int | None = None):
-        self.path = Path(path) if path is not None else default_model_path()
-        self.session = cpu_session(self.path, threads)
-        self.input_name = self.session.get_inputs()[0].name
-        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
-
-    def __call__(self, windows: np.ndarray) -> np.ndarray:
-        """Reconstruct ``(B, 41, H, W)`` windows into ``(B, H, W)`` linear intensity in [0, 1]."""
-        (out,) = self.session.run(
-            None, {self.input_name: np.ascontiguousarray(windows, np.float32)}
-        )
-        return out[:, 0]
+def check_device(device: str) -> str:
+    """``device`` if it is one of :data:`DEVICES`, else :class:`InputError`."""
+    if device not in DEVICES:
+        raise InputError(f"unknown device {device!r}: choose one of {', '.join(DEVICES)}")
+    return device
 
 
-def cpu_session(path: Path, threads: int | None = None):
-    """An onnxruntime CPU session for ``path`` with ``threads`` intra-op threads (None:
-    onnxruntime's default); :class:`InputError` for a missing or unloadable file."""
+def available_providers() -> list[str]:
+    """The execution providers this onnxruntime build has (not a promise that a GPU is there)."""
     import onnxruntime as ort
 
-    if not path.is_file():
-        raise InputError(f"no such model file: {path}")
+    return list(ort.get_available_providers())
+
+
+def resolve_device(device: str, providers: list[str] | None = None) -> tuple[str, str]:
+    """The concrete device (``cpu``, ``cuda`` or ``tensorrt``) to try for ``device``, and a
+    note on the choice ('' unless ``auto``); :class:`DeviceError` for ``cuda``/``tensorrt``
+    when onnxruntime has no such provider. ``providers``: default :func:`available_providers`."""
+    check_device(device)
+    providers = available_providers() if providers is None else providers
+    if device == "auto":
+        if PROVIDERS["cuda"] in providers:
+            return "cuda", "--device auto chose cuda (onnxruntime has CUDAExecutionProvider)"
+        return "cpu", (
+            "--device auto chose cpu (this onnxruntime has no CUDAExecutionProvider; "
+            f"providers: {', '.join(providers)})"
+        )
+    if PROVIDERS[device] not in providers:
+        raise DeviceError(missing_provider(device, providers))
+    return device, ""
+
+
+def missing_provider(device: str, providers: list[str]) -> str:
+    """The one line for a device whose provider this onnxruntime lacks."""
+    import onnxruntime as ort
+
+    fix = GPU_INSTALL
+    if device == "tensorrt" and PROVIDERS["cuda"] in providers:
+        fix = "install TensorRT's libraries (docs/gpu.md)"
+    return (
+        f"device {device!r} needs onnxruntime's {PROVIDERS[device]}, which onnxruntime "
+        f"{ort.__version__} here does not have (it has {', '.join(providers)}): {fix}, "
+        "or use --device cpu or --device auto"
+    )
+
+
+def provider_chain(device: str, fp16: bool = False) -> list[tuple[str, dict]]:
+    """The ``(provider, options)`` list of a concrete device, first choice first (onnxruntime
+    places each operator on the first provider that has a kernel for it).
+
+    CUDA: the memory arena grows by what is asked for, not in doubling chunks (one large
+    request must not pin a doubled arena for good, as on the CPU). TensorRT: engines cached in
+    :data:`TRT_CACHE`, fp16 kernels allowed when ``fp16``.
+    """
+    cuda = ("CUDAExecutionProvider", {"arena_extend_strategy": "kSameAsRequested"})
+    cpu = ("CPUExecutionProvider", {})
+    if device == "cpu":
+        return [cpu]
+    if device == "cuda":
+        return [cuda, cpu]
+    if device == "tensorrt":
+        trt = {
+            "trt_engine_cache_enable": "True",
+            "trt_engine_cache_path": str(TRT_CACHE),
+            "trt_fp16_enable": "True" if fp16 else "False",
+        }
+        return [("TensorrtExecutionProvider", trt), cuda, cpu]
+    raise ValueError(f"not a concrete device: {device!r}")
+
+
+def session_options(threads: int | None = None):
+    """onnxruntime session options: ``threads`` intra-op threads (None: onnxruntime's default,
+    also for the CPU-side operators of a GPU session) and no CPU memory arena (else one large
+    request pins its memory for good)."""
+    import onnxruntime as ort
+
     options = ort.SessionOptions()
-    options.enable_cpu_mem_arena = False  # else one large request pins its memory for good
+    options.enable_cpu_mem_arena = False
     if threads:
         options.intra_op_num_threads = threads
         options.inter_op_num_threads = 1
+    return options
+
+
+@dataclass
+class Session:
+    """An onnxruntime session and where it runs."""
+
+    session: object
+    """The ``onnxruntime.InferenceSession``."""
+    device: str
+    """The concrete device it runs on: ``cpu``, ``cuda`` or ``tensorrt``."""
+    note: str = ""
+    """Why ``auto`` chose :attr:`device` ('' when a device was named)."""
+
+    @property
+    def provider(self) -> str:
+        """The execution provider actually in use (the first the session holds)."""
+        return self.session.get_providers()[0]
+
+
+def create_session(
+    path: str | Path, threads: int | None = None, device: str = "cpu", fp16: bool = False
+) -> Session:
+    """An onnxruntime session for ``path`` on ``device`` (:data:`DEVICES`).
+
+    Raises :class:`InputError` for a missing or unloadable file and :class:`DeviceError` when
+    ``cuda``/``tensorrt`` cannot run here: no such provider, or onnxruntime has it but fell
+    back to the CPU when it started (no GPU, or CUDA/cuDNN libraries missing). ``auto`` then
+    runs on the CPU and says so in :attr:`Session.note`.
+    """
+    import onnxruntime as ort
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"no such model file: {path}")
+    concrete, note = resolve_device(device)
+    if concrete == "tensorrt":
+        TRT_CACHE.mkdir(parents=True, exist_ok=True)
+    chain = provider_chain(concrete, fp16)
     try:
-        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        session = ort.InferenceSession(
+            str(path),
+            session_options(threads),
+            providers=[name for name, _ in chain],
+            provider_options=[options for _, options in chain],
+        )
     except Exception as exc:  # onnxruntime raises its own untyped errors for bad files
         raise InputError(f"{path}: not a loadable ONNX model ({exc})") from exc
+    in_use = session.get_providers()[0]
+    if in_use != PROVIDERS[concrete]:  # onnxruntime-gpu falls back quietly when CUDA fails
+        reason = (
+            f"onnxruntime has {PROVIDERS[concrete]} but could not start it (no GPU, or its "
+            "CUDA/cuDNN libraries are missing: see onnxruntime's warning above and docs/gpu.md)"
+        )
+        if device != "auto":
+            raise DeviceError(f"device {device!r}: {reason}")
+        fallback = create_session(path, threads, "cpu")
+        fallback.note = f"--device auto chose cpu ({reason})"
+        return fallback
+    return Session(session, concrete, note)
+
+
+def run_session(
+    session: Session, feeds: dict[str, np.ndarray], outputs: list[str], io_binding: bool
+) -> list[np.ndarray]:
+    """Run ``session`` on ``feeds``; the ``outputs`` as numpy arrays.
+
+    With ``io_binding`` the inputs are bound from host memory (copied to the device once, by
+    onnxruntime) and the outputs allocated on the session's device and copied back once, so
+    no intermediate host copy is made on either side; the same path runs on the CPU provider
+    (the tests check it there).
+    """
+    if not io_binding:
+        return session.session.run(outputs, feeds)
+    binding = session.session.io_binding()
+    for name, array in feeds.items():
+        binding.bind_cpu_input(name, array)
+    where = "cpu" if session.device == "cpu" else "cuda"
+    for name in outputs:
+        binding.bind_output(name, where)
+    session.session.run_with_iobinding(binding)
+    return binding.copy_outputs_to_cpu()
+
+
+class OnnxModel:
+    """An ONNX reconstruction graph: ``(B, 41, H, W)`` 0/1 float32 -> ``(B, H, W)`` float32.
+
+    ``threads`` sets onnxruntime's intra-op threads (None: onnxruntime's default); ``device``
+    is one of :data:`DEVICES` (:func:`create_session`); ``io_binding`` (default: on a GPU)
+    runs through onnxruntime's IO binding (:func:`run_session`). The graph's batch axis is
+    dynamic: one call may reconstruct many centres. ``metadata`` holds the graph's
+    ``metadata_props`` (name, version, config, sha256 …); ``device``, ``provider`` and
+    ``device_note`` say where it runs.
+    """
+
+    def __init__(
+        self,
+        path: str | Path | None = None,
+        threads: int | None = None,
+        device: str = "cpu",
+        io_binding: bool | None = None,
+    ):
+        self.path = Path(path) if path is not None else default_model_path()
+        self.runner = create_session(self.path, threads, device)
+        self.session = self.runner.session
+        self.input_name = self.session.get_inputs()[0].name
+        self.output_name = self.session.get_outputs()[0].name
+        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.io_binding = self.device != "cpu" if io_binding is None else io_binding
+
+    @property
+    def device(self) -> str:
+        """The concrete device the graph runs on (``cpu``, ``cuda`` or ``tensorrt``)."""
+        return self.runner.device
+
+    @property
+    def provider(self) -> str:
+        """The onnxruntime execution provider in use."""
+        return self.runner.provider
+
+    @property
+    def device_note(self) -> str:
+        """Why ``--device auto`` chose :attr:`device` ('' when a device was named)."""
+        return self.runner.note
+
+    def __call__(self, windows: np.ndarray) -> np.ndarray:
+        """Reconstruct ``(B, 41, H, W)`` windows into ``(B, H, W)`` linear intensity in [0, 1]."""
+        feeds = {self.input_name: np.ascontiguousarray(windows, np.float32)}
+        (out,) = run_session(self.runner, feeds, [self.output_name], self.io_binding)
+        return out[:, 0]

@@ -12,10 +12,11 @@ import os
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+Device = Literal["cpu", "auto", "cuda", "tensorrt"]
 
 
 def available_cores() -> int:
@@ -36,6 +37,12 @@ class ServiceSettings(BaseSettings):
     )
     host: str = Field("127.0.0.1", description="interface to listen on")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
+    device: Device = Field(
+        "cpu",
+        description="where onnxruntime runs the model: cpu, auto (cuda when it can run here, "
+        "else cpu; the log and /v1/models say which), cuda or tensorrt (the gpu extra, "
+        "docs/gpu.md); a GPU device onnxruntime cannot run here stops the service at start",
+    )
     threads: int = Field(
         default_factory=available_cores,
         ge=1,
@@ -104,6 +111,20 @@ class ServiceSettings(BaseSettings):
     )
     retry_after_seconds: int = Field(1, ge=0, description="the Retry-After of a 503 in seconds")
     log_level: LogLevel = Field("info", description="uvicorn's log level")
+
+    @field_validator("device")
+    @classmethod
+    def _device_runs_here(cls, device: str) -> str:
+        """``cuda``/``tensorrt`` only where onnxruntime has the provider (the service refuses
+        to start otherwise; whether the GPU itself starts is checked when the model loads)."""
+        if device in ("cuda", "tensorrt"):
+            from spk2img.core.onnx_backend import DeviceError, resolve_device
+
+            try:
+                resolve_device(device)
+            except DeviceError as exc:
+                raise ValueError(str(exc)) from None
+        return device
 
     @property
     def model_path(self) -> Path:
