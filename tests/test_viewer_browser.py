@@ -151,9 +151,13 @@ def test_dat_upload_two_methods_pixels_and_downloads(page, service, tmp_path):
         assert float(npz["gamma"]) == 2.2
 
 
-def test_npy_upload_is_packed_like_a_dat(page, service, tmp_path):
-    path = tmp_path / "rec.npy"
-    np.save(path, SPIKES.astype(bool))
+@pytest.mark.parametrize("suffix", [".npy", ".npz"])
+def test_npy_and_npz_uploads_are_packed_like_a_dat(page, service, tmp_path, suffix):
+    path = tmp_path / f"rec{suffix}"
+    if suffix == ".npy":
+        np.save(path, SPIKES.astype(bool))
+    else:  # deflated, beside another array: the page takes "spk"
+        np.savez_compressed(path, spk=SPIKES, other=np.zeros(3))
     choose(page, path, method="tfi", window="21")
     page.check("#use-centers")
     page.fill("#centers", "15,60,150")

@@ -15,7 +15,7 @@
   const MAX_CENTRES_PER_REQUEST = 1000; // keeps a centres= list far under the 8 KiB query limit
   const TFI_CENTRES_PER_REQUEST = 16; // TFI holds its centres until every pixel fires again
   const BUSY_RETRIES = 10;
-  const FILMSTRIP_THUMB = 100; // px a thumbnail takes in the strip, gap included
+  const FILMSTRIP_THUMB = 104; // px a thumbnail takes in the strip: 96 + borders + gap
   const YIELD_MS = 30; // long loops give the page back this often
 
   const $ = (id) => document.getElementById(id);
@@ -577,14 +577,19 @@
     });
   }
 
-  function paint(canvas, run, centre) {
+  function paint(canvas, run, centre, note = "") {
     const data = run?.frames.get(centre);
     canvas.dataset.centre = data ? String(centre) : "";
     canvas.dataset.method = run ? run.method : "";
     const ctx = canvas.getContext("2d");
-    if (!data) {
-      ctx.fillStyle = "#000";
+    if (!data) { // a placeholder with a word on it
+      ctx.fillStyle = "#1b1f27";
       ctx.fillRect(0, 0, canvas.width, canvas.height);
+      ctx.fillStyle = "#8a93a6";
+      ctx.font = `${Math.max(10, Math.round(canvas.height / 14))}px sans-serif`;
+      ctx.textAlign = "center";
+      ctx.textBaseline = "middle";
+      ctx.fillText(note, canvas.width / 2, canvas.height / 2);
       return false;
     }
     if (canvas.width !== run.width || canvas.height !== run.height) {
@@ -608,17 +613,18 @@
     ui.slider.disabled = n < 2;
     const centre = n ? centres[state.index] : null;
     if (!a) {
+      paint(ui.canvasA, null, null, "choose a spike stream and press Reconstruct");
       ui.captionA.textContent = "—";
       ui.frameLabel.textContent = "no frames";
     } else {
-      paint(ui.canvasA, a, centre);
-      ui.captionA.textContent = `${a.label}` + (centre !== null ? `, centre ${centre}` : ", waiting for frames");
+      paint(ui.canvasA, a, centre, state.abort ? "waiting for the first frame…" : "no frame");
+      ui.captionA.textContent = `${a.label}` + (centre !== null ? `, centre ${centre}` : state.abort ? ", waiting for frames" : ", no frames");
       ui.frameLabel.textContent = n
         ? `frame ${state.index + 1} of ${n}${a.expected && a.expected !== n ? ` (${a.expected} coming)` : ""} · centre ${centre}`
         : "no frames yet";
     }
     if (b) {
-      const shown = paint(ui.canvasB, b, centre);
+      const shown = paint(ui.canvasB, b, centre, centre === null ? "" : `centre ${centre}: not yet`);
       ui.captionB.textContent = `${b.label}` + (shown ? `, centre ${centre}` : centre === null ? "" : `, centre ${centre}: not yet`);
       const toggled = ui.layout.value === "toggle";
       ui.panes.className = toggled ? "toggle" : "side";
