@@ -621,7 +621,7 @@
       ui.captionA.textContent = `${a.label}` + (centre !== null ? `, centre ${centre}` : state.abort ? ", waiting for frames" : ", no frames");
       ui.frameLabel.textContent = n
         ? `frame ${state.index + 1} of ${n}${a.expected && a.expected !== n ? ` (${a.expected} coming)` : ""} · centre ${centre}`
-        : "no frames yet";
+        : state.abort ? "no frames yet" : "no frames";
     }
     if (b) {
       const shown = paint(ui.canvasB, b, centre, centre === null ? "" : `centre ${centre}: not yet`);
