@@ -43,6 +43,7 @@ def markdown(results: dict) -> str:
         class_table(results),
         efficiency_table(results),
         service_table(results),
+        gpu_table(results),
         f"![PSNR against time per frame]({PLOT_NAME})\n",
         "Streams — block-feature reuse against whole windows, and the quality tiers per "
         "scene class: [bench_streaming.md](bench_streaming.md) (`spk2img bench` writes "
@@ -192,6 +193,66 @@ def service_table(results: dict) -> str:
             cells += [f"{side['frames_per_s']:.2f}"]
             cells += [number(side[f"p{q}_ms"]) for q in (50, 90, 99)]
         lines.append(table_row([*cells, f"{level['overhead']:.2f}"]))
+    return "\n".join(lines) + "\n"
+
+
+def gpu_table(results: dict) -> str:
+    """The GPU rows (:mod:`spk2img.bench.gpu`): measured, or each marked not yet measured with
+    the reason (a run from before the GPU rows existed had no GPU either: it ran on the CPU
+    build of onnxruntime)."""
+    from .gpu import NO_GPU, SERVICE_CLIENTS, not_measured
+
+    section = results.get("gpu") or not_measured()
+    lines = ["## On a GPU", ""]
+    device = section["device"]
+    if device is None:
+        lines += [
+            f"{section['error'][:1].upper()}{section['error'][1:]}: no figure below was "
+            "measured. On a machine with an NVIDIA GPU and the gpu extra (docs/gpu.md), "
+            "`spk2img bench --gpu-only --update-docs` measures these rows and writes them here.",
+            "",
+        ]
+    else:
+        command = section.get("command", results["command"])
+        lines += [
+            f"`{command}` on {section['gpu']} with onnxruntime's {device} provider. "
+            f"ms/frame: the median of the timed calls after two warm-up calls over "
+            f"{results['settings']['height']}x{results['settings']['width']} windows of the "
+            "benchmark set, divided by the centres per call; streamed: the streaming "
+            "benchmark's stream at every 7th centre, each 13-frame block encoded once, wall time "
+            "over frames. fp16: the fp32 graph (and its block graphs) converted "
+            "(`spk2img verify --fp16` reports its error on every hard case).",
+            "",
+        ]
+    cols = ["method", "precision", "run", "device", "ms/frame", "frames/s"]
+    lines += table_head(cols)
+    where = "none (no GPU)" if device is None else f"{section['gpu']} ({device})"
+    for row in section["rows"]:
+        name = f"Spk2ImgNet {row['weights']}" + (
+            "" if row["weights"] == "shipped" else " (untrained)"
+        )
+        if device is None:
+            cells = [NO_GPU, DASH]
+        elif row.get("error"):
+            cells = [f"failed ({row['error']})", DASH]
+        else:
+            ms = row["ms_per_frame"]
+            cells = [number(ms), number(1000.0 / ms)]
+        lines.append(table_row([name, row["precision"], row["mode"], where, *cells]))
+    service = section.get("service")
+    served = f"service over HTTP, {SERVICE_CLIENTS} clients"
+    if device is None:
+        lines.append(table_row(["Spk2ImgNet shipped", "fp32", served, where, NO_GPU, DASH]))
+    elif service is None:
+        lines.append(table_row(["Spk2ImgNet shipped", "fp32", served, where, DASH, "not run"]))
+    elif "error" in service:
+        failed = f"failed ({service['error']})"
+        lines.append(table_row(["Spk2ImgNet shipped", "fp32", served, where, DASH, failed]))
+    else:
+        (level,) = service["levels"]
+        fps = level["service"]["frames_per_s"]
+        cells = ["Spk2ImgNet shipped", "fp32", served, f"{where}, {service['provider']}"]
+        lines.append(table_row([*cells, DASH, f"{fps:.2f}"]))
     return "\n".join(lines) + "\n"
 
 

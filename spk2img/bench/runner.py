@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import artifacts
+from . import artifacts, gpu
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
 from .rows import NetRow, Row, TfiRow, TfpRow, row_to_json
 from .scores import best_tfp_window, max_abs_error, quality
@@ -77,6 +77,9 @@ class BenchOptions:
     """Whether to run the streaming benchmark (block reuse)."""
     command: str = "spk2img bench"
     """The command line that reproduces this run (for the report)."""
+    device: str = "auto"
+    """Where the GPU rows run (:mod:`spk2img.bench.gpu`): ``auto`` (CUDA where it starts,
+    else they are reported as not yet measured), ``cuda``, ``tensorrt`` or ``cpu`` (skipped)."""
 
 
 Log = Callable[[str], None]
@@ -95,6 +98,7 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
     """Measure everything ``options`` asks for; see :mod:`spk2img.bench.report` for the fields."""
     scale = options.scale
     started = datetime.now(UTC)
+    gpu_choice = gpu_decision(options, log)  # before hours of CPU rows: --device cuda fails now
     with tempfile.TemporaryDirectory(prefix="spk2img-bench-") as tmp:
         work = Path(tmp)
         log(
@@ -130,6 +134,7 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         )
         streaming = streaming_run(options, work, log) if options.streaming else None
         tiers = tiers_run(options, cases, work, log) if options.streaming else None
+        on_gpu = gpu_run(options, gpu_choice, cases, cases_dir, work, log)
     return {
         "command": options.command,
         "date": started.isoformat(timespec="seconds"),
@@ -155,7 +160,80 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         "service": service,
         "streaming": streaming,
         "tiers": tiers,
+        "gpu": on_gpu,
     }
+
+
+def run_gpu_only(options: BenchOptions, log: Log) -> dict:
+    """Only the GPU rows (:mod:`spk2img.bench.gpu`), on the benchmark set of ``options``."""
+    choice = gpu_decision(options, log)
+    scale = options.scale
+    with tempfile.TemporaryDirectory(prefix="spk2img-bench-") as tmp:
+        work = Path(tmp)
+        cases = benchmark_set(scale.per_class, scale.height, scale.width)
+        return gpu_run(options, choice, cases, cases.save_spikes(work / "cases"), work, log)
+
+
+def gpu_decision(options: BenchOptions, log: Log) -> tuple[str | None, str]:
+    """The GPU rows' device, or ``None`` and why they are not measured
+    (:func:`~spk2img.bench.gpu.gpu_device`, probed with the shipped model's graph)."""
+    from spk2img.core.onnx_backend import resolve_device
+
+    if options.device in ("cuda", "tensorrt"):
+        resolve_device(options.device)  # no such provider: DeviceError, before any work
+    shipped = artifacts.shipped()
+    if shipped is None:
+        return None, "not measured: the shipped model is not installed"
+    device, why = gpu.gpu_device(options.device, shipped.onnx)
+    log(f"GPU rows on {device}" if device else f"GPU rows: {why}")
+    return device, why
+
+
+def gpu_run(
+    options: BenchOptions,
+    choice: tuple[str | None, str],
+    cases: BenchSet,
+    cases_dir: Path,
+    work: Path,
+    log: Log,
+) -> dict:
+    """The GPU section: measured on the device of ``choice`` (:func:`gpu_decision`), else the
+    planned rows marked not measured with its reason."""
+    device, why = choice
+    if device is None:
+        return gpu.not_measured(why)
+    scale = options.scale
+    shipped = artifacts.shipped()
+    weights = {"shipped": shipped.onnx}
+    log("exporting paper (random weights) for the GPU rows")
+    paper = artifacts.random_member("paper", work)
+    try:
+        artifacts.make_graph(paper, "onnx", work / "gpu-paper.onnx", None)
+        weights["paper"] = work / "gpu-paper.onnx"
+    except Exception as exc:  # noqa: BLE001 - its rows report the failure
+        log(f"export of paper for the GPU failed: {exc}")
+    stream = work / "gpu-stream.npy"
+    np.save(stream, stream_spikes(scale.stream_frames, scale.height, scale.width))
+    threads = max(options.threads)
+    result = gpu.gpu_benchmark(
+        device, weights, cases_dir, stream, threads, scale.repeats, work, log
+    )
+    if options.service:
+        window = np.array(cases.spikes[0])
+        result["service"] = gpu.gpu_service(
+            device, shipped.onnx, window, threads, scale.service_requests, log
+        )
+    return result
+
+
+def stream_spikes(frames: int, height: int, width: int) -> np.ndarray:
+    """The streaming benchmark's stream (fast motion, real-like sensor, its seed)."""
+    from spk2img.core.scenes import random_scene
+    from spk2img.core.simulator import SensorConfig, simulate
+
+    rng = np.random.default_rng([BENCH_SEED, 7])
+    scene = random_scene(rng, height, width, "fast", "normal")
+    return simulate(scene, frames, SensorConfig.real(), rng)
 
 
 def run_streaming_only(options: BenchOptions, log: Log) -> dict:

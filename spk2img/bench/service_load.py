@@ -39,15 +39,17 @@ def free_port() -> int:
 
 
 @contextmanager
-def running_service(model: Path, threads: int, env: dict[str, str]) -> Iterator[str]:
-    """Run ``spk2img serve`` on ``model`` with ``threads`` threads; yield its base URL once
-    ``/readyz`` answers 200; stop it afterwards."""
+def running_service(
+    model: Path, threads: int, env: dict[str, str], device: str = "cpu"
+) -> Iterator[str]:
+    """Run ``spk2img serve`` on ``model`` with ``threads`` threads on ``device``; yield its base
+    URL once ``/readyz`` answers 200; stop it afterwards."""
     import httpx
 
     port = free_port()
     cmd = [sys.executable, "-m", "spk2img", "serve", "--model", str(model)]
     cmd += ["--host", "127.0.0.1", "--port", str(port), "--threads", str(threads)]
-    cmd += ["--log-level", "warning"]
+    cmd += ["--log-level", "warning", "--device", device]
     url = f"http://127.0.0.1:{port}"
     with tempfile.TemporaryFile() as log:  # a file, not a pipe: a full pipe would block it
         process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
@@ -114,14 +116,22 @@ def drive(make_call: Callable[[], Callable[[], None]], clients: int, requests: i
 
 
 def service_benchmark(
-    model: Path, window: np.ndarray, threads: int, levels: tuple[int, ...], requests: int
+    model: Path,
+    window: np.ndarray,
+    threads: int,
+    levels: tuple[int, ...],
+    requests: int,
+    device: str = "cpu",
 ) -> dict:
     """Load the service and the in-process model with ``window (41, H, W) uint8`` at each number
-    of concurrent clients in ``levels``; ``overhead`` is in-process frames/s over the service's."""
+    of concurrent clients in ``levels``; ``overhead`` is in-process frames/s over the service's.
+    ``device``: where both run; the service must report that it runs there (``/readyz``), else
+    :class:`RuntimeError`."""
     from spk2img.core.onnx_backend import OnnxModel
 
     batch = window[None].astype(np.float32)
-    local_model = OnnxModel(model, threads=1)  # the service's intra-op threads: T // T workers
+    # the service's intra-op threads: T // T workers
+    local_model = OnnxModel(model, threads=1, device=device)
     local_model(batch)  # warm-up, as the service warms up before it is ready
     jobs = ThreadPoolExecutor(threads)  # like the service's pool: T jobs at once, FIFO queue
 
@@ -129,7 +139,13 @@ def service_benchmark(
         return lambda: jobs.submit(local_model, batch).result()
 
     results = []
-    with running_service(model, threads, {**os.environ, **thread_env(threads)}) as url:
+    env = {**os.environ, **thread_env(threads)}
+    with running_service(model, threads, env, device) as url:
+        provider = served_provider(url)
+        if provider != local_model.provider:
+            raise RuntimeError(
+                f"the service runs the model on {provider}, not {local_model.provider}"
+            )
         http_call = partial(http_caller, url, window)
         drive(http_call, 1, 2)  # warm-up: the first requests' code paths
         for clients in levels:
@@ -142,11 +158,20 @@ def service_benchmark(
     jobs.shutdown()
     return {
         "model": str(model),
+        "provider": provider,
         "threads": threads,
         "height": int(window.shape[1]),
         "width": int(window.shape[2]),
         "levels": results,
     }
+
+
+def served_provider(url: str) -> str:
+    """The onnxruntime provider the service at ``url`` reports in ``/readyz`` (a service that
+    does not report one runs on the CPU)."""
+    import httpx
+
+    return httpx.get(url + "/readyz", timeout=10).json().get("provider", "CPUExecutionProvider")
 
 
 def http_caller(url: str, window: np.ndarray) -> Callable[[], None]:

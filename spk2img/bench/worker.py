@@ -13,6 +13,10 @@
   ``stride``-th centre, each window whole or each block encoded once
   (:mod:`spk2img.core.block_stream`), after one untimed warm-up call; the wall seconds, and the
   frames saved to ``PATH``.
+- ``{"job": "gpu", "model": ONNX, "device": "cuda", "batch": 8, "threads": [1], "repeats": 5,
+  "cases": DIR, "spikes": NPY}``: on a GPU device (:mod:`spk2img.bench.gpu`), ``batch``
+  windows of the benchmark set per call (after two untimed calls), or with ``batch`` 0 the
+  stream streamed with block reuse: the median ms per frame and the provider it ran on.
 - ``{"job": "tiers", "model": ONNX, "threads": [1], "cases": DIR, "outputs": DIR}``: each
   ``quality`` tier (:mod:`spk2img.core.adaptive`) on every window of the benchmark set, after
   one warm-up call: the seconds of each window, the share of pixels the balanced tier ran the
@@ -95,8 +99,9 @@ def measure_stream(spec: dict) -> dict:
     (threads,) = spec["threads"]
     spikes = np.load(spec["spikes"], mmap_mode="r")
     height, width = spikes.shape[1:]
-    model = OnnxModel(spec["model"], threads)
-    codec = OnnxBlockCodec(spec["model"], threads) if spec["mode"] == "reuse" else None
+    device = spec.get("device", "cpu")
+    model = OnnxModel(spec["model"], threads, device)
+    codec = OnnxBlockCodec(spec["model"], threads, device) if spec["mode"] == "reuse" else None
     if codec is None:
         model(np.zeros((1, 41, height, width), np.float32))  # warm-up
     else:
@@ -115,6 +120,34 @@ def measure_stream(spec: dict) -> dict:
         "reconstructor": type(recon).__name__,
         "blocks_encoded": getattr(recon, "blocks_encoded", None),
         "peak_rss_mib": peak_rss_mib(),
+    }
+
+
+def measure_gpu(spec: dict) -> dict:
+    """ms per frame of one GPU row: one-shot ``batch`` windows a call, or streamed (0)."""
+    import tempfile
+
+    from spk2img.core.onnx_backend import OnnxModel
+
+    (threads,) = spec["threads"]
+    model = OnnxModel(spec["model"], threads, spec["device"])
+    where = {"device": model.device, "provider": model.provider}
+    if spec["batch"]:
+        windows = load_spikes(Path(spec["cases"]))
+        picks = [np.array(windows[i % len(windows)]) for i in range(spec["batch"])]
+        batch = np.stack(picks).astype(np.float32)
+        seconds, _ = call_seconds(partial(model, batch), spec["repeats"], warmup=2)
+        return {**where, "ms_per_frame": median_ms(seconds) / spec["batch"], "seconds": seconds}
+    del model  # the stream job loads its own sessions
+    with tempfile.TemporaryDirectory(prefix="spk2img-gpu-") as tmp:
+        stream = {**spec, "mode": "reuse", "stride": 7, "outputs": str(Path(tmp) / "f.npy")}
+        result = measure_stream(stream)
+    ms = 1000.0 * result["seconds"] / result["outputs"]
+    return {
+        **where,
+        "ms_per_frame": ms,
+        "seconds": [result["seconds"]],
+        "frames": result["outputs"],
     }
 
 
@@ -158,6 +191,7 @@ JOBS = {
     "matmul": measure_matmul,
     "stream": measure_stream,
     "tiers": measure_tiers,
+    "gpu": measure_gpu,
 }
 
 

@@ -13,6 +13,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from spk2img.core.errors import InputError
+from spk2img.core.onnx_backend import DEVICES
 
 RUNS_DIR = Path("bench-runs")
 """Where runs go by default, one folder each (git-ignored)."""
@@ -61,6 +62,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="also benchmark and score a trained checkpoint (repeatable)",
     )
     p.add_argument("--skip-service", action="store_true", help="skip the HTTP load test")
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where the GPU rows run (docs/gpu.md): auto (default: CUDA where onnxruntime can "
+        "run it, else they are written as not yet measured), cuda or tensorrt (an error at "
+        "start where it cannot run), cpu (skip them); the CPU rows always run on the CPU",
+    )
     sections = p.add_mutually_exclusive_group()
     sections.add_argument(
         "--skip-streaming", action="store_true", help="skip the streaming benchmark (block reuse)"
@@ -71,13 +80,19 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="run only the streaming benchmark: bench_streaming.md and .json "
         "(the other files are left as they are)",
     )
+    sections.add_argument(
+        "--gpu-only",
+        action="store_true",
+        help="run only the GPU rows and write them into the bench.json and bench.md already in "
+        "the output folder (use with --update-docs or --out-dir of an earlier run)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     args.out_dir = out_dir(args)
     options = bench_options(args)
     from spk2img.bench.report import write_report  # every extra: spk2img.cli.extras checked
-    from spk2img.bench.runner import run_benchmark, run_streaming_only
+    from spk2img.bench.runner import run_benchmark, run_gpu_only, run_streaming_only
     from spk2img.bench.streaming import write_streaming_report
 
     start = time.monotonic()
@@ -85,6 +100,12 @@ def run(args: argparse.Namespace) -> int:
     def log(message: str) -> None:
         print(f"bench [{time.monotonic() - start:5.0f} s] {message}", file=sys.stderr, flush=True)
 
+    if args.gpu_only:
+        if not (args.out_dir / "bench.json").is_file():
+            raise InputError(f"--gpu-only: no bench.json in {args.out_dir} to add the rows to")
+        section = run_gpu_only(options, log) | {"command": options.command}
+        log(f"wrote {add_gpu_rows(args.out_dir, section)}")
+        return 0
     if args.streaming_only:
         results = run_streaming_only(options, log)
         paths = []
@@ -100,6 +121,21 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_gpu_rows(directory: Path, section: dict) -> Path:
+    """Put the GPU ``section`` into ``directory``'s bench.json and rewrite its bench.md from
+    it (the other rows stay as they were measured); the bench.md path."""
+    import json
+
+    from spk2img.bench.report import JSON_NAME, MD_NAME, markdown
+
+    path = directory / JSON_NAME
+    results = json.loads(path.read_text())
+    results["gpu"] = section
+    path.write_text(json.dumps(results, indent=1) + "\n")
+    (directory / MD_NAME).write_text(markdown(results))
+    return directory / MD_NAME
+
+
 def out_dir(args: argparse.Namespace, now: datetime | None = None) -> Path:
     """Where a run writes: ``--out-dir``, ``docs/`` with ``--update-docs``, else a new folder
     ``bench-runs/YYYYmmdd-HHMMSS/`` (UTC; ``-2``, ``-3`` … if it exists already)."""
@@ -107,6 +143,8 @@ def out_dir(args: argparse.Namespace, now: datetime | None = None) -> Path:
         return args.out_dir
     if args.update_docs:
         return DOCS_DIR
+    if args.gpu_only:
+        raise InputError("--gpu-only adds to an earlier run: give --update-docs or --out-dir DIR")
     stamp = (now or datetime.now(UTC)).strftime("%Y%m%d-%H%M%S")
     path, n = RUNS_DIR / stamp, 1
     while path.exists():
@@ -142,7 +180,14 @@ def bench_options(args: argparse.Namespace):
         "--update-docs" if args.out_dir == DOCS_DIR else f"--out-dir {args.out_dir}",
         f"--threads {','.join(map(str, threads))}",
     ]
-    if args.streaming_only:  # the rows' options do not apply
+    if args.gpu_only:
+        command += [
+            "--gpu-only",
+            f"--repeats {repeats}",
+            f"--device {args.device}",
+            "--skip-service" if args.skip_service else "",
+        ]
+    elif args.streaming_only:  # the rows' options do not apply
         command.append("--streaming-only")
     else:
         command += [
@@ -151,6 +196,7 @@ def bench_options(args: argparse.Namespace):
             *(f"--trained {n}={p}" for n, p in trained),
             "--skip-service" if args.skip_service else "",
             "--skip-streaming" if args.skip_streaming else "",
+            "" if args.device == "auto" else f"--device {args.device}",
         ]
     return BenchOptions(
         replace(scale, repeats=repeats, members=members),
@@ -159,6 +205,7 @@ def bench_options(args: argparse.Namespace):
         service=not args.skip_service and not args.streaming_only,
         streaming=not args.skip_streaming,
         command=" ".join(part for part in command if part),
+        device=args.device,
     )
 
 

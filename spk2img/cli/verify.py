@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from spk2img.core.errors import InputError
+from spk2img.core.onnx_backend import DEVICES
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -32,7 +33,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "exit 1 if any case exceeds --atol or is not finite. With MODEL.encoder.onnx and "
         "MODEL.head.onnx beside it, also stream them with block reuse at stride 7 against the "
         "network on each window. The weights come from --checkpoint, "
-        "else MODEL.pt next to MODEL.onnx, else (random-weight exports) the metadata's seed.",
+        "else MODEL.pt next to MODEL.onnx, else (random-weight exports) the metadata's seed. "
+        "A fp16/int8 graph, and --fp16's conversion, pass a case at PSNR >= 30 dB against "
+        "PyTorch with no NaN/Inf.",
     )
     p.add_argument("model", type=Path, help="the exported .onnx")
     p.add_argument("--checkpoint", type=Path, help="the checkpoint it was exported from")
@@ -43,6 +46,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--atol", type=float, default=None, help="max abs error allowed (1e-4)")
     p.add_argument("--threads", type=int, default=None, help="PyTorch threads for the reference")
+    p.add_argument(
+        "--fp16",
+        action="store_true",
+        help="also convert the graph (and its block graphs) to fp16, the GPU's precision, and "
+        "report its error on every case",
+    )
+    p.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="cpu",
+        help="where onnxruntime runs the graphs (default cpu; docs/gpu.md)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -70,13 +85,14 @@ def run(args: argparse.Namespace) -> int:
 
     def progress(result) -> None:
         print(
-            f"  {result.case} ({result.threads} thr): max abs {result.max_abs:.2e}",
+            f"  {result.case} ({result.precision}, {result.device}, {result.threads} thr): "
+            f"max abs {result.max_abs:.2e}",
             file=sys.stderr,
             flush=True,
         )
 
     atol = ATOL if args.atol is None else args.atol
-    report = verify_onnx(args.model, model, cases, atol, progress)
+    report = verify_onnx(args.model, model, cases, atol, progress, args.fp16, args.device)
     if all(path.is_file() for path in block_graph_paths(args.model).values()):
         sizes = [(CASE_HEIGHT, CASE_WIDTH)] + ([] if args.quick else [(250, 400)])
         streamed = [
@@ -86,7 +102,10 @@ def run(args: argparse.Namespace) -> int:
                 hard_cases.fast_stream(h, w),
                 f"block graphs, stream {h}x{w}",
                 atol,
+                fp16,
+                args.device,
             )
+            for fp16 in ([False, True] if args.fp16 else [False])
             for h, w in sizes
         ]
         for result in streamed:

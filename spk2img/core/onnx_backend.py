@@ -128,8 +128,12 @@ def provider_chain(device: str, fp16: bool = False) -> list[tuple[str, dict]]:
 
 def session_options(threads: int | None = None):
     """onnxruntime session options: ``threads`` intra-op threads (None: onnxruntime's default,
-    also for the CPU-side operators of a GPU session) and no CPU memory arena (else one large
-    request pins its memory for good)."""
+    also for the CPU-side operators of a GPU session) and no CPU memory arena.
+
+    Without the arena, memory goes back to the system after each run; with it, a session keeps
+    its largest run's memory even after it is deleted (measured: tiny at 1000x1000 holds
+    13.8 GB), so one large request pins its memory for good.
+    """
     import onnxruntime as ort
 
     options = ort.SessionOptions()

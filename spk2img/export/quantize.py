@@ -6,7 +6,9 @@
 - ``fp16``: weights and activations in float16 (``onnxruntime.transformers.float16``), input
   and output kept float32.
 
-Inputs and outputs keep the fp32 contract (``spikes`` float32 -> ``image`` float32 in [0, 1]).
+Inputs and outputs keep the fp32 contract (``spikes`` float32 -> ``image`` float32 in [0, 1]);
+the block encoder and head (:func:`reduce_block_graphs`) keep theirs too. fp16 is the GPU's
+precision (docs/gpu.md): ``spk2img verify --fp16`` reports its error on every hard case.
 """
 
 from __future__ import annotations
@@ -39,7 +41,8 @@ CALIBRATION_WINDOWS = 16
 CALIBRATION_SIZE = (64, 96)
 MIN_PSNR_VS_FP32 = 30.0
 """A reduced-precision graph whose output is below this PSNR (dB) against the fp32 graph's on
-the validation set is refused."""
+the validation set is refused; ``verify`` holds each hard case of a reduced-precision graph to
+the same PSNR against PyTorch."""
 
 
 class SimulatedWindows(CalibrationDataReader):
@@ -56,7 +59,9 @@ class SimulatedWindows(CalibrationDataReader):
 
 def reduce_precision(fp32_path: str | Path, out: str | Path, precision: str) -> onnx.ModelProto:
     """Write the ``precision`` (``fp16`` or ``int8``) variant of the graph at ``fp32_path`` to
-    ``out``, with the fp32 graph's metadata (``precision`` updated); returns it."""
+    ``out``, with the fp32 graph's metadata (``precision`` updated) and its inputs and outputs
+    (names, float32, dims); returns it. Any graph: the one-shot one, the block encoder, the
+    head."""
     fp32 = onnx.load(fp32_path)
     if precision == "fp16":
         model = convert_float_to_float16(fp32, keep_io_types=True)
@@ -85,9 +90,29 @@ def reduce_precision(fp32_path: str | Path, out: str | Path, precision: str) -> 
     model.opset_import.extend(kept)  # the quantizer declares Microsoft domains it does not use
     metadata = {p.key: p.value for p in fp32.metadata_props} | {"precision": precision}
     onnx.helper.set_model_props(model, metadata)
-    check_graph(model)
+    check_graph(model, graph_io(fp32))
     onnx.save_model(model, out, save_as_external_data=False)
     return model
+
+
+def graph_io(model: onnx.ModelProto) -> dict[str, list[str | int]]:
+    """``{name: dims}`` of a graph's inputs and outputs (a dim: its name, else its size)."""
+    values = [*model.graph.input, *model.graph.output]
+    return {
+        v.name: [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim] for v in values
+    }
+
+
+def reduce_block_graphs(fp32_model: str | Path, out: str | Path, precision: str) -> list[Path]:
+    """The ``precision`` variants of the block encoder and head beside the one-shot graph
+    ``fp32_model``, written beside ``out`` (``OUT.encoder.onnx``, ``OUT.head.onnx``) so that
+    :class:`~spk2img.core.block_model.OnnxBlockCodec` finds them for ``out``; their paths."""
+    from spk2img.core.block_model import block_graph_paths
+
+    sources, targets = block_graph_paths(fp32_model), block_graph_paths(out)
+    for part, source in sources.items():
+        reduce_precision(source, targets[part], precision)
+    return list(targets.values())
 
 
 def precision_report(fp32_path: str | Path, candidate_path: str | Path, per_class: int = 1) -> dict:

@@ -10,7 +10,12 @@ the same windows; their ``(B, H, W)`` outputs are compared by
 - ``psnr_db``: PSNR of the onnx output against the torch output, peak 1 (``inf``: identical),
 - ``nonfinite``: NaN or Inf values in either output.
 
-A case passes when ``max_abs <= atol`` and ``nonfinite == 0``.
+A case passes when ``max_abs <= atol`` and ``nonfinite == 0``. A reduced-precision graph
+(``fp16``, ``int8``: its metadata says which, or ``verify --fp16`` converts the fp32 graph, the
+GPU's precision, docs/gpu.md) cannot hold float32's ``atol``: its cases pass when
+``psnr_db >= MIN_PSNR_VS_FP32`` (30 dB, the bar ``export`` sets such graphs against fp32) and
+``nonfinite == 0``, and every case reports its errors all the same. ``device`` runs the
+onnxruntime side on a GPU (:func:`spk2img.core.onnx_backend.create_session`).
 """
 
 from __future__ import annotations
@@ -24,15 +29,18 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import torch
 
+from spk2img.core.block_model import OnnxBlockCodec
+from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.errors import InputError
 from spk2img.core.metrics import psnr
-from spk2img.core.windows import NET_WINDOW
+from spk2img.core.onnx_backend import create_session
+from spk2img.core.stream import collect, frame_chunks, run_stream
+from spk2img.core.windows import NET_WINDOW, CenterPlan
 from spk2img.model.network import Spk2ImgNet
 
-from .block_graphs import stream_block_graphs, whole_windows
+from .block_graphs import whole_windows
 from .hard_cases import Case, far_offset_copy
 from .metadata import weights_sha256
 from .onnx_export import (
@@ -44,6 +52,7 @@ from .onnx_export import (
     graph_kind,
     random_source,
 )
+from .quantize import MIN_PSNR_VS_FP32, reduce_block_graphs, reduce_precision
 
 ATOL = 1e-4
 """Largest fp32 difference allowed between torch and onnxruntime (linear intensity)."""
@@ -64,6 +73,19 @@ class CaseResult:
     torch_s: float
     onnx_s: float
     passed: bool
+    precision: str = "fp32"
+    """The graph's precision: ``fp32``, ``fp16`` or ``int8``."""
+    device: str = "cpu"
+    """Where onnxruntime ran it (:data:`~spk2img.core.onnx_backend.DEVICES`, concrete)."""
+
+
+def case_passes(scores: dict, precision: str, atol: float) -> bool:
+    """fp32: ``max_abs <= atol``; fp16/int8: ``psnr_db >= MIN_PSNR_VS_FP32``; never NaN/Inf."""
+    if scores["nonfinite"]:
+        return False
+    if precision == "fp32":
+        return scores["max_abs"] <= atol
+    return scores["psnr_db"] >= MIN_PSNR_VS_FP32
 
 
 @dataclass(frozen=True)
@@ -79,19 +101,23 @@ class VerifyReport:
     def table(self) -> str:
         """The results as a fixed-width text table."""
         head = (
-            f"{'case':<30} {'input (B,T,H,W)':<18} {'thr':>3} {'max abs':>9} {'max rel':>9} "
-            f"{'PSNR dB':>8} {'NaN/Inf':>7} {'torch s':>8} {'onnx s':>7}  ok"
+            f"{'case':<30} {'input (B,T,H,W)':<18} {'prec':<4} {'dev':<4} {'thr':>3} "
+            f"{'max abs':>9} {'max rel':>9} {'PSNR dB':>8} {'NaN/Inf':>7} {'torch s':>8} "
+            f"{'onnx s':>7}  ok"
         )
         rows = [head, "-" * len(head)]
         for r in self.results:
             shape = "x".join(str(d) for d in r.shape)
             rows.append(
-                f"{r.case:<30} {shape:<18} {r.threads:>3} {r.max_abs:>9.2e} {r.max_rel:>9.2e} "
-                f"{r.psnr_db:>8.1f} {r.nonfinite:>7} {r.torch_s:>8.2f} {r.onnx_s:>7.2f}  "
-                f"{'yes' if r.passed else 'NO'}"
+                f"{r.case:<30} {shape:<18} {r.precision:<4} {r.device[:4]:<4} {r.threads:>3} "
+                f"{r.max_abs:>9.2e} {r.max_rel:>9.2e} {r.psnr_db:>8.1f} {r.nonfinite:>7} "
+                f"{r.torch_s:>8.2f} {r.onnx_s:>7.2f}  {'yes' if r.passed else 'NO'}"
             )
         verdict = "PASS" if self.passed else "FAIL"
-        rows.append(f"{verdict}: max abs error <= {self.atol:g} and no NaN/Inf required")
+        rule = f"{verdict}: max abs error <= {self.atol:g} (fp32)"
+        if any(r.precision != "fp32" for r in self.results):
+            rule += f", PSNR against torch >= {MIN_PSNR_VS_FP32:g} dB (fp16/int8)"
+        rows.append(rule + " and no NaN/Inf required")
         return "\n".join(rows)
 
     def to_json(self) -> dict:
@@ -158,78 +184,122 @@ def verify_onnx(
     cases: list[Case],
     atol: float = ATOL,
     progress: Callable[[CaseResult], None] | None = None,
+    fp16: bool = False,
+    device: str = "cpu",
 ) -> VerifyReport:
     """Run ``model`` (the exported network, eval mode) and the graph at ``onnx_path`` on every
     case and compare their outputs; ``progress`` is called with each result as it comes.
 
     Cases with a ``variant`` run a modified copy of ``model`` against a graph exported from that
-    copy the same way (same graph kind) into a temporary directory.
+    copy the same way (same graph kind, and precision) into a temporary directory. With
+    ``fp16`` (an fp32 graph only) every case also runs the graph converted to fp16
+    (:func:`~spk2img.export.quantize.reduce_precision`). ``device``: where onnxruntime runs;
+    off the CPU and for reduced precision only the case's first thread count runs.
     """
     onnx_path = Path(onnx_path)
-    kind = graph_kind(onnx.load(onnx_path, load_external_data=False))
+    graph = onnx.load(onnx_path, load_external_data=False)
+    kind, own = graph_kind(graph), graph_precision(graph)
+    if fp16 and own != "fp32":
+        raise InputError(f"--fp16 converts an fp32 graph; {onnx_path.name} is {own} already")
+    precisions = [own, "fp16"] if fp16 else [own]
     results = []
     with tempfile.TemporaryDirectory(prefix="spk2img-verify-") as tmp:
         variants = {None: (model.eval(), onnx_path)}
+        graphs = {(None, own): onnx_path}
+
+        def graph_for(variant: str | None, precision: str) -> Path:
+            if (variant, precision) not in graphs:
+                path = Path(tmp) / f"{len(graphs)}-{precision}.onnx"
+                reduce_precision(variants[variant][1], path, precision)
+                graphs[variant, precision] = path
+            return graphs[variant, precision]
+
         for case in cases:
             if case.variant not in variants:
                 variants[case.variant] = _export_variant(model, case.variant, kind, Path(tmp))
-            net, path = variants[case.variant]
+                graphs[case.variant, "fp32"] = variants[case.variant][1]
+            net = variants[case.variant][0]
             start = time.perf_counter()
             with torch.inference_mode():
                 reference = net(torch.from_numpy(case.spikes))[0][:, 0].numpy()
             torch_s = time.perf_counter() - start
-            for threads in case.threads:
-                session = onnx_session(path, threads)
-                start = time.perf_counter()
-                output = session.run(None, {INPUT_NAME: case.spikes})[0][:, 0]
-                onnx_s = time.perf_counter() - start
-                del session
-                scores = compare_outputs(reference, output)
-                ok = scores["max_abs"] <= atol and scores["nonfinite"] == 0
-                result = CaseResult(
-                    case.name,
-                    case.spikes.shape,
-                    threads,
-                    **scores,
-                    torch_s=torch_s,
-                    onnx_s=onnx_s,
-                    passed=ok,
+            for precision in precisions:
+                path = graph_for(case.variant, precision)
+                counts = (
+                    case.threads if precision == "fp32" and device == "cpu" else case.threads[:1]
                 )
-                results.append(result)
-                if progress:
-                    progress(result)
+                for threads in counts:
+                    session = create_session(path, threads, device)
+                    start = time.perf_counter()
+                    output = session.session.run(None, {INPUT_NAME: case.spikes})[0][:, 0]
+                    onnx_s = time.perf_counter() - start
+                    where = session.device
+                    del session
+                    scores = compare_outputs(reference, output)
+                    result = CaseResult(
+                        case.name,
+                        case.spikes.shape,
+                        threads,
+                        **scores,
+                        torch_s=torch_s,
+                        onnx_s=onnx_s,
+                        passed=case_passes(scores, precision, atol),
+                        precision=precision,
+                        device=where,
+                    )
+                    results.append(result)
+                    if progress:
+                        progress(result)
     return VerifyReport(str(onnx_path), atol, results)
 
 
+def graph_precision(graph: onnx.ModelProto) -> str:
+    """The ``precision`` of a graph's metadata (``fp32`` when it has none)."""
+    return {p.key: p.value for p in graph.metadata_props}.get("precision", "fp32")
+
+
 def verify_block_graphs(
-    onnx_path: str | Path, model: Spk2ImgNet, spikes: np.ndarray, name: str, atol: float = ATOL
+    onnx_path: str | Path,
+    model: Spk2ImgNet,
+    spikes: np.ndarray,
+    name: str,
+    atol: float = ATOL,
+    fp16: bool = False,
+    device: str = "cpu",
 ) -> CaseResult:
     """The block encoder and head beside ``onnx_path`` streamed at stride 7 over ``spikes``
-    ``(T, H, W)`` with block reuse, against ``model`` on each window whole (one thread)."""
-    start = time.perf_counter()
-    streamed, centers = stream_block_graphs(onnx_path, spikes)
-    onnx_s = time.perf_counter() - start
+    ``(T, H, W)`` with block reuse, against ``model`` on each window whole (one thread).
+    ``fp16``: the fp16 conversions of both graphs instead; ``device``: where they run."""
+    graph = onnx.load(onnx_path, load_external_data=False)
+    precision = "fp16" if fp16 else graph_precision(graph)
+    height, width = spikes.shape[1:]
+    with tempfile.TemporaryDirectory(prefix="spk2img-verify-") as tmp:
+        if fp16:
+            converted = Path(tmp) / "fp16.onnx"
+            reduce_block_graphs(onnx_path, converted, "fp16")
+            onnx_path = converted
+        start = time.perf_counter()
+        codec = OnnxBlockCodec(onnx_path, threads=1, device=device)
+        recon = BlockReuseStream(height, width, CenterPlan(NET_WINDOW, stride=7), codec)
+        streamed, centers = collect(run_stream(recon, frame_chunks(spikes)), height, width)
+        onnx_s = time.perf_counter() - start
     start = time.perf_counter()
     reference = whole_windows(model, spikes, centers)
     torch_s = time.perf_counter() - start
     scores = compare_outputs(reference, streamed)
     shape = (len(reference), NET_WINDOW, *spikes.shape[1:])
-    ok = scores["max_abs"] <= atol and scores["nonfinite"] == 0
-    return CaseResult(name, shape, 1, **scores, torch_s=torch_s, onnx_s=onnx_s, passed=ok)
-
-
-def onnx_session(path: str | Path, threads: int) -> ort.InferenceSession:
-    """A CPU session with ``threads`` intra-op threads and no memory arena.
-
-    Without the arena, memory goes back to the system after each run; with it, a session keeps
-    its largest run's memory even after it is deleted (measured: tiny at 1000x1000 holds
-    13.8 GB), so a second session at that size doubles the footprint.
-    """
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.enable_cpu_mem_arena = False
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    ok = case_passes(scores, precision, atol)
+    return CaseResult(
+        name,
+        shape,
+        1,
+        **scores,
+        torch_s=torch_s,
+        onnx_s=onnx_s,
+        passed=ok,
+        precision=precision,
+        device=codec.device,
+    )
 
 
 def _export_variant(
