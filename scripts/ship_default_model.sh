@@ -2,7 +2,8 @@
 # Ship a training run's best checkpoint as the default model: strip the optimiser state, export
 # and verify the ONNX graph, write the model card and the README figure, and keep the run's
 # resumable state (last.pt + metrics log) in training_state/ so a later session can continue it.
-# Usage: scripts/ship_default_model.sh runs/small-v1 [MODEL-CARD OPTIONS, e.g. --history "..."]
+# Usage: scripts/ship_default_model.sh runs/lite-v1 [MODEL-CARD OPTIONS, e.g. --data DIR
+#        --real-capture CAPTURE.npz --history "..."]
 set -euo pipefail
 run=${1:?usage: $0 RUN_DIR [MODEL-CARD OPTIONS]}
 shift

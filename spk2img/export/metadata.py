@@ -6,7 +6,7 @@ Keys (all values are strings, as ONNX requires):
 - ``version``: the spk2img package version that exported it.
 - ``member`` and ``config``: the family member and its :class:`Spk2ImgNetConfig` as JSON.
 - ``window`` (41) and ``rate`` (0.6): the spike frames read and the spikes per frame at I = 1
-  (docs/format.md, docs/model_card.md); the output is linear intensity ``I`` in [0, 1].
+  (docs/format.md, docs/architecture.md); the output is linear intensity ``I`` in [0, 1].
 - ``training_commit`` and ``training_commit_source``: the commit the checkpoint was trained at
   when the checkpoint stores one (``source`` = ``checkpoint``), else the exporting tree's
   ``git rev-parse HEAD`` (``git HEAD at export``), else ``unknown``.

@@ -47,7 +47,18 @@ def load_model(path: str | Path) -> Spk2ImgNet:
     return model.eval()
 
 
-RELEASE_KEYS = ("model", "config", "member", "step", "wall_s", "train_config", "val_psnr", "commit")
+RELEASE_KEYS = (
+    "model",
+    "config",
+    "member",
+    "step",
+    "wall_s",
+    "train_config",
+    "val_psnr",
+    "val_set",
+    "commit",
+    "hardware",
+)
 
 
 def release_checkpoint(src: str | Path, dst: str | Path) -> None:

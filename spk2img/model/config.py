@@ -1,7 +1,8 @@
 """Spk2ImgNet hyper-parameters and the named family members built from them.
 
-``paper`` is the published network (docs/model_card.md, 3,904,185 parameters); smaller members keep
-every idea of it (SALI, pyramid deformable alignment, reliability fusion) at lower width and depth.
+``paper`` is the published network (docs/architecture.md, 3,904,185 parameters); smaller
+members keep every idea of it (SALI, pyramid deformable alignment, reliability fusion) at lower
+width, depth or resolution.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from dataclasses import dataclass, replace
 
 @dataclass(frozen=True)
 class Spk2ImgNetConfig:
-    """Shape of a Spk2ImgNet; the defaults are the published network (docs/model_card.md)."""
+    """Shape of a Spk2ImgNet; the defaults are the published network (docs/architecture.md)."""
 
     block_frames: int = 13
     """Frames of one temporal block (the key block is centred on the window's centre)."""

@@ -1,5 +1,6 @@
 """Spk2ImgNet (Zhao et al., "Spk2ImgNet: Learning to Reconstruct Dynamic Scene from Continuous
-Spike Stream", CVPR 2021) as docs/model_card.md describes it, for any :class:`Spk2ImgNetConfig`."""
+Spike Stream", CVPR 2021) as docs/architecture.md describes it, for any
+:class:`Spk2ImgNetConfig`."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The hierarchical L1 loss of Spk2ImgNet (docs/model_card.md)."""
+"""The hierarchical L1 loss of Spk2ImgNet (docs/architecture.md)."""
 
 from __future__ import annotations
 

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import math
 import os
+import platform
 import sys
 import time
 from dataclasses import dataclass, field
@@ -166,6 +167,7 @@ def train(cfg: TrainConfig) -> dict:
             config=config_to_dict(model.config),
             train_config=dataclasses.asdict(cfg),
             commit=commit,
+            hardware=describe_hardware(device, cfg.threads),
             **extra,
         )
 
@@ -236,6 +238,14 @@ def train(cfg: TrainConfig) -> dict:
             log.write(kind="replicas", world_size=run.world, max_abs_diff=diff)
     run.close()
     return val
+
+
+def describe_hardware(device: torch.device, threads: int) -> str:
+    """What trains: the GPU's name, or the CPU's cores and the threads used."""
+    if device.type == "cuda":
+        return f"{torch.cuda.get_device_name(device)} (CUDA, bf16 autocast)"
+    cpu = platform.processor() or platform.machine()
+    return f"a {os.cpu_count()}-core {cpu} CPU, {threads} torch thread(s)"
 
 
 def training_device(name: str) -> torch.device:
