@@ -16,6 +16,8 @@ import pytest
 from PIL import Image
 from service_support import OCTET, parse_frames, stream_bytes
 
+from spk2img.core.framing import MEDIA_TYPE, encode_error, encode_frame
+
 CHROMIUM = Path("/usr/bin/chromium")
 H, W, T = 32, 48, 200
 SPIKES, BODY = stream_bytes(T, H, W, seed=7)
@@ -211,3 +213,32 @@ def test_the_services_error_appears_on_the_page(page, service, tmp_path):
     assert message == f"The service answered 422: {expected.json()['detail']}"
     assert "not a whole number of 33x48 frames" in message
     assert page.is_enabled("#run")  # ready for the next try
+
+
+@pytest.mark.parametrize(
+    ("ending", "message"),
+    [
+        (encode_error("the request took over 60 s (max_request_seconds)", 408), "answered 408"),
+        (b"", "the response was cut"),
+    ],
+)
+def test_an_error_after_frames_keeps_them(page, tmp_path, ending, message):
+    """An ``ERRO`` record after some frames (or a response cut short) is shown, and the frames
+    that came stay on the page (the service's answer is stood in for by the browser)."""
+    image = np.arange(H * W, dtype=np.uint32).reshape(H, W).astype(np.uint8)
+    body = encode_frame(20, image, "uint8") + encode_frame(30, image[::-1], "uint8") + ending
+    page.route(
+        "**/v1/reconstruct?*",
+        lambda route: route.fulfill(status=200, body=body, content_type=MEDIA_TYPE),
+    )
+    path = tmp_path / "rec.dat"
+    path.write_bytes(BODY)
+    choose(page, path, height=str(H), width=str(W), method="tfp", stride="10")
+    page.click("#run")
+    page.wait_for_selector("#error:not([hidden])", timeout=WAIT_MS)
+    assert message in page.inner_text("#error")
+    assert page.inner_text("#frame-label").startswith("frame 2 of 2")
+    centre, pixels = shown(page, "canvas-a")
+    assert centre == 30
+    np.testing.assert_array_equal(pixels, image[::-1])
+    assert page.is_enabled("#download-npz")

@@ -624,8 +624,10 @@
         : state.abort ? "no frames yet" : "no frames";
     }
     if (b) {
-      const shown = paint(ui.canvasB, b, centre, centre === null ? "" : `centre ${centre}: not yet`);
-      ui.captionB.textContent = `${b.label}` + (shown ? `, centre ${centre}` : centre === null ? "" : `, centre ${centre}: not yet`);
+      const waiting = state.abort !== null && !b.done && !b.error;
+      const missing = centre === null ? "" : waiting ? `centre ${centre}: not yet` : `no frame at centre ${centre}`;
+      const shown = paint(ui.canvasB, b, centre, missing);
+      ui.captionB.textContent = `${b.label}` + (shown ? `, centre ${centre}` : missing ? `, ${missing}` : "");
       const toggled = ui.layout.value === "toggle";
       ui.panes.className = toggled ? "toggle" : "side";
       $("pane-a").classList.toggle("hidden-by-toggle", toggled && state.showB);
