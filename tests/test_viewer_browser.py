@@ -39,7 +39,9 @@ def browser():
     executable = CHROMIUM if CHROMIUM.is_file() else Path(shutil.which("chromium"))
     with sync_api.sync_playwright() as playwright:
         # never Playwright's own browser download: the machine has Debian's Chromium
-        browser = playwright.chromium.launch(executable_path=str(executable), args=["--no-sandbox"])
+        browser = playwright.chromium.launch(
+            executable_path=str(executable), args=["--no-sandbox", "--disable-dev-shm-usage"]
+        )
         yield browser
         browser.close()
 
