@@ -119,12 +119,14 @@ def nginx_servers(text: str) -> dict[str, list[str]]:
     return servers
 
 
-def test_nginx_publishes_only_the_api_and_health():
+def test_nginx_publishes_only_the_api_health_and_viewer():
     servers = nginx_servers(NGINX.read_text())
     assert servers["80"] == [
         "location /v1/",
         "location = /healthz",
         "location = /readyz",
+        "location = /",
+        "location /static/",
         "location /",
     ]
     assert "metrics" in servers["8081"][0] and "docs" in servers["8081"][0]

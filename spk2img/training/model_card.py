@@ -73,19 +73,19 @@ def real_capture_niqe(onnx_path: Path, capture: Path) -> dict:
     } | {"capture": capture.name, "centers": centers}
 
 
-def _row(name: str, s: dict) -> str:
-    cells = [f"{s['psnr']:.2f}", f"{s['ssim']:.3f}"]
-    cells += [f"{s[c]:.2f}" if c in s else "—" for c in CLASSES]
+def _row(name: str, s: dict, classes: list[str]) -> str:
+    cells = [f"{s['psnr']:.2f}", f"{s['ssim']:.3f}"] + [f"{s[c]:.2f}" for c in classes]
     return f"| {name} | " + " | ".join(cells) + " |"
 
 
 def _table(member: str, scores: dict) -> str:
-    header = "| method | PSNR dB | SSIM | " + " | ".join(c[5:] for c in CLASSES) + " |"
-    rule = "|---" * (3 + len(CLASSES)) + "|"
+    classes = [c for c in CLASSES if c in scores["network"]]  # the set's sensors, motions, ...
+    header = "| method | PSNR dB | SSIM | " + " | ".join(c[5:] for c in classes) + " |"
+    rule = "|---" * (3 + len(classes)) + "|"
     rows = [
-        _row(f"Spk2ImgNet {member} (ONNX)", scores["network"]),
-        _row("TFP, best window", scores["tfp_best"]),
-        _row("TFI", scores["tfi"]),
+        _row(f"Spk2ImgNet {member} (ONNX)", scores["network"], classes),
+        _row("TFP, best window", scores["tfp_best"], classes),
+        _row("TFI", scores["tfi"], classes),
     ]
     return "\n".join([header, rule, *rows])
 
