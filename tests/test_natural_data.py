@@ -26,6 +26,7 @@ from spk2img.training.sources import (
     SourceIndex,
     VideoFile,
     load_clip,
+    load_photo,
     read_video,
     to_linear,
 )
@@ -176,6 +177,18 @@ def test_samples_draw_every_kind_and_fall_back_to_procedural(data_dir):
     assert spikes.shape == (6, 41, 16, 16) and truth.shape == (6, 5, 16, 16)
     assert set(np.unique(spikes)) <= {0.0, 1.0} and 0 <= truth.min() and truth.max() <= 1
     assert SampleMaker(16, 0, mix=DataMix(0, 1, 1), index=None).weights.tolist() == [1, 0, 0]
+
+
+def test_a_file_that_breaks_after_indexing_gives_a_procedural_sample(tmp_path):
+    good = tmp_path / "good.png"
+    Image.fromarray(texture(80, 80, 1)).save(good)
+    index = SourceIndex.scan([tmp_path], min_side=16)
+    good.write_bytes(good.read_bytes()[:100])  # truncated: the header still reads
+    load_photo.cache_clear()
+    maker = SampleMaker(16, seed=0, mix=DataMix(0, 1, 0), index=index)
+    with pytest.warns(UserWarning, match="procedural sample instead"):
+        spikes, truth = maker.batch(0, 2)
+    assert spikes.shape == (2, 41, 16, 16) and np.isfinite(truth).all()
 
 
 def test_train_from_folders_selects_on_the_natural_validation(tmp_path, data_dir):

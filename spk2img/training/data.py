@@ -10,6 +10,7 @@ processes may make them in any order.
 from __future__ import annotations
 
 import multiprocessing
+import warnings
 from collections import deque
 from dataclasses import dataclass
 
@@ -97,14 +98,18 @@ class SampleMaker:
         kind = KINDS[int(rng.choice(len(KINDS), p=self.weights))]
         motion, brightness = str(rng.choice(MOTIONS)), str(rng.choice(BRIGHTNESSES))
         p = self.patch
-        if kind == "photos":
-            picks = rng.integers(len(self.index.photos), size=1 + MAX_LAYERS)
-            photos = [load_photo(self.index.photos[k].path) for k in picks]
-            scene = photo_scene(rng, photos, p, p, motion, brightness)
-        elif kind == "clips":
-            clip = self.index.clips[int(rng.integers(len(self.index.clips)))]
-            scene = clip_scene(rng, load_clip(clip), p, p, motion, brightness)
-        else:
+        try:
+            if kind == "photos":
+                picks = rng.integers(len(self.index.photos), size=1 + MAX_LAYERS)
+                photos = [load_photo(self.index.photos[k].path) for k in picks]
+                scene = photo_scene(rng, photos, p, p, motion, brightness)
+            elif kind == "clips":
+                clip = self.index.clips[int(rng.integers(len(self.index.clips)))]
+                scene = clip_scene(rng, load_clip(clip), p, p, motion, brightness)
+        except (OSError, ValueError) as exc:  # a file that broke after the index was built
+            warnings.warn(f"training data: {exc}; a procedural sample instead", stacklevel=2)
+            kind = "procedural"
+        if kind == "procedural":
             scene = random_scene(rng, p, p, motion, brightness, PROCEDURAL_KINDS)
         sensor = self.draw_sensor(rng)
         spikes = simulate(scene, NET_WINDOW, sensor, rng)
