@@ -110,3 +110,5 @@ def test_reduced_precision_cases_pass_on_psnr_not_atol():
     assert not case_passes({**close, "psnr_db": 25.0}, "fp16", 1e-4)
     assert not case_passes({**close, "nonfinite": 1}, "fp16", 1.0)
     assert case_passes({**close, "max_abs": 1e-5}, "fp32", 1e-4)
+    numpy_scores = {"max_abs": np.float32(1e-3), "psnr_db": np.float64(60.0), "nonfinite": 0}
+    assert json.dumps([case_passes(numpy_scores, p, 1e-4) for p in ("fp32", "fp16")])

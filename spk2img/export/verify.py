@@ -84,8 +84,8 @@ def case_passes(scores: dict, precision: str, atol: float) -> bool:
     if scores["nonfinite"]:
         return False
     if precision == "fp32":
-        return scores["max_abs"] <= atol
-    return scores["psnr_db"] >= MIN_PSNR_VS_FP32
+        return bool(scores["max_abs"] <= atol)
+    return bool(scores["psnr_db"] >= MIN_PSNR_VS_FP32)
 
 
 @dataclass(frozen=True)
