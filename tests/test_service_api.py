@@ -50,12 +50,14 @@ def model(standin_model):
 
 def test_health_readiness_and_models(service):
     assert service.get("/healthz").json() == {"status": "ok"}
-    assert service.get("/readyz").json() == {"status": "ready"}
+    ready = {"status": "ready", "device": "cpu", "provider": "CPUExecutionProvider"}
+    assert service.get("/readyz").json() == ready
     answer = service.get("/v1/models").json()
     assert answer["methods"] == ["net", "tfp", "tfi"]
     (info,) = answer["models"]
     assert info["name"] == "tfp41-standin" and info["metadata"] == TFP_MODEL_METADATA
     assert info["window"] == 41 and info["input_name"] == "spikes"
+    assert (info["device"], info["provider"]) == ("cpu", "CPUExecutionProvider")
     assert service.get("/docs").status_code == 200
     paths = service.get("/openapi.json").json()["paths"]
     assert {"/v1/reconstruct", "/v1/models", "/healthz", "/readyz", "/metrics"} <= set(paths)

@@ -51,11 +51,16 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
     settings = state.settings
-    state.model = await asyncio.to_thread(OnnxModel, settings.model_path, settings.intra_op_threads)
+    state.model = await asyncio.to_thread(
+        OnnxModel, settings.model_path, settings.intra_op_threads, settings.device
+    )  # a GPU device that cannot run here raises: the service does not start
+    if state.model.device_note:
+        logger.warning("%s", state.model.device_note)
+    logger.info("model runs on %s (%s)", state.model.device, state.model.provider)
     parts = block_graph_paths(settings.model_path).values()
     if settings.block_reuse and all(path.is_file() for path in parts):
         state.codec = await asyncio.to_thread(
-            OnnxBlockCodec, settings.model_path, settings.intra_op_threads
+            OnnxBlockCodec, settings.model_path, settings.intra_op_threads, state.model.device
         )
     pool = InferencePool(settings.job_workers, settings.max_queue, settings.memory_budget_bytes)
     state.pool = pool

@@ -71,6 +71,13 @@ class Status(BaseModel):
     status: str
 
 
+class Ready(Status):
+    """``GET /readyz`` when ready: also where the model runs."""
+
+    device: str = Field(description="where the model runs: cpu, cuda or tensorrt")
+    provider: str = Field(description="the onnxruntime execution provider in use")
+
+
 class ModelInfo(BaseModel):
     """A served model: what ``method=net`` runs."""
 
@@ -82,6 +89,10 @@ class ModelInfo(BaseModel):
     metadata: dict[str, str] = Field(description="the ONNX metadata_props")
     block_graphs: list[str] = Field(
         description="the block encoder and head files in use (empty: every window runs whole)"
+    )
+    device: str = Field(description="where the model runs: cpu, cuda or tensorrt")
+    provider: str = Field(
+        description="the onnxruntime execution provider in use, e.g. CUDAExecutionProvider"
     )
 
 

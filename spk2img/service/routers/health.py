@@ -6,7 +6,7 @@ from fastapi import APIRouter, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 
 from ..reconstruction import JOB_BYTES
-from ..schemas import ErrorDetail, Status
+from ..schemas import ErrorDetail, Ready, Status
 from ..state import Service
 
 router = APIRouter(tags=["health"])
@@ -28,14 +28,15 @@ def healthz() -> Status:
         }
     },
 )
-def readyz(service: Service) -> Status:
-    """200 once the model is loaded and warmed while a request could be admitted; 503 (with
-    ``Retry-After``) before, and while every place or the memory budget is taken."""
+def readyz(service: Service) -> Ready:
+    """200 once the model is loaded and warmed while a request could be admitted, with the
+    device and onnxruntime provider it runs on; 503 (with ``Retry-After``) before, and while
+    every place or the memory budget is taken."""
     if not service.ready:
         raise service.unavailable()
     if service.pool.full(JOB_BYTES):
         raise service.busy()
-    return Status(status="ready")
+    return Ready(status="ready", device=service.model.device, provider=service.model.provider)
 
 
 @router.get(

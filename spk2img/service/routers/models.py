@@ -25,5 +25,7 @@ def list_models(model: ServedModel, service: Service) -> ModelsAnswer:
         input_name=model.input_name,
         metadata=model.metadata,
         block_graphs=[path.name for path in parts],
+        device=model.device,
+        provider=model.provider,
     )
     return ModelsAnswer(models=[info], methods=list(METHODS))
