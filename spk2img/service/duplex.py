@@ -257,12 +257,7 @@ class _Outbox:
             self._task = asyncio.ensure_future(self._write())
         self._wake.set()
         while not self._task.done():
-            self._progress.clear()
-            try:
-                async with asyncio.timeout(self.stall):
-                    await self._progress.wait()
-            except TimeoutError:
-                raise Unread from None
+            await self._await_progress()
         self._task.result()
 
     def stop(self) -> None:
@@ -273,12 +268,16 @@ class _Outbox:
         while self.buffered > limit:
             if self._task.done():
                 self._task.result()  # raises what the writer raised
-            self._progress.clear()
-            try:
-                async with asyncio.timeout(self.stall):
-                    await self._progress.wait()
-            except TimeoutError:
-                raise Unread from None
+            await self._await_progress()
+
+    async def _await_progress(self) -> None:
+        """Wait until the writer sends more; :class:`Unread` after ``stall`` seconds without."""
+        self._progress.clear()
+        try:
+            async with asyncio.timeout(self.stall):
+                await self._progress.wait()
+        except TimeoutError:
+            raise Unread from None
 
     async def _write(self) -> None:
         try:
