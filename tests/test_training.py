@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from spk2img.model.checkpoint import load_checkpoint, load_model
+from spk2img.core.errors import InputError
+from spk2img.model.checkpoint import load_checkpoint, load_model, save_checkpoint
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_l1
 from spk2img.training.train import TrainConfig, learning_rate, train
@@ -76,6 +77,17 @@ def test_resume_continues_the_same_loss_curve(tmp_path):
     state_b = load_checkpoint(resumed / "last.pt")["model"]
     for name in state_a:
         torch.testing.assert_close(state_a[name], state_b[name], rtol=1e-5, atol=1e-6)
+
+
+def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):
+    """A ``last.pt`` of another shape than the member's (say, from before a member changed)
+    is refused, not loaded into a network it does not describe."""
+    train(TrainConfig(run_dir=str(tmp_path), steps=1, **TINY_RUN))
+    state = load_checkpoint(tmp_path / "last.pt")
+    state["config"]["intensity_base"] = True
+    save_checkpoint(tmp_path / "last.pt", **state)
+    with pytest.raises(InputError, match="another shape"):
+        train(TrainConfig(run_dir=str(tmp_path), steps=2, **TINY_RUN))
 
 
 def test_validation_logs_network_and_baselines(tmp_path):

@@ -29,9 +29,15 @@ CODE_ROLES = ("feat", "nbr", "key")
 """A block code's parts: feature pyramid, offset-conv terms as a neighbour and as the key."""
 
 
-def code_names(levels: int) -> list[str]:
-    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``."""
-    return [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
+BASE_CODE = "base"
+"""The code of members with an intensity base: the block's mean spike rate ``(1, hp, wp)``."""
+
+
+def code_names(levels: int, base: bool = False) -> list[str]:
+    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``,
+    then ``base`` if the member has an intensity base."""
+    names = [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
+    return [*names, BASE_CODE] if base else names
 
 
 class BlockCodec(Protocol):
@@ -102,7 +108,9 @@ class OnnxBlockCodec:
         self.block_frames = int(config["block_frames"])
         self.block_stride = int(config["block_stride"])
         self.num_blocks = int(config["num_blocks"])
-        self.names = code_names(int(config["pyramid_levels"]))
+        self.names = code_names(
+            int(config["pyramid_levels"]), bool(config.get("intensity_base", False))
+        )
 
     def encode(self, block: np.ndarray) -> BlockCode:
         feeds = {"block": np.ascontiguousarray(block[None], np.float32)}
@@ -116,9 +124,9 @@ class OnnxBlockCodec:
 
 
 def head_inputs(codes: Sequence[BlockCode], names: list[str], num_blocks: int) -> dict:
-    """The head's inputs from a window's block codes: every block's ``feat_l*`` stacked
-    ``(1, blocks, c, h, w)``, the neighbours' ``nbr_l*`` ``(1, blocks - 1, ...)``, the key's
-    ``key_l*`` ``(1, c, h, w)``."""
+    """The head's inputs from a window's block codes: every block's ``feat_l*`` (and
+    ``base``) stacked ``(1, blocks, c, h, w)``, the neighbours' ``nbr_l*``
+    ``(1, blocks - 1, ...)``, the key's ``key_l*`` ``(1, c, h, w)``."""
     if len(codes) != num_blocks:
         raise ValueError(f"the head takes {num_blocks} block codes, got {len(codes)}")
     key = num_blocks // 2
@@ -126,7 +134,7 @@ def head_inputs(codes: Sequence[BlockCode], names: list[str], num_blocks: int) -
     feeds = {}
     for index, name in enumerate(names):
         role = name.split("_")[0]
-        if role == "feat":
+        if role in ("feat", BASE_CODE):
             feeds[name] = np.stack([code[index] for code in codes])[None]
         elif role == "nbr":
             feeds[name] = np.stack([code[index] for code in neighbours])[None]

@@ -24,7 +24,12 @@ from spk2img.core.errors import InputError
 from spk2img.core.evaluation import baseline_scores, network_scorer, score, validation_set
 from spk2img.core.provenance import git_commit
 from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
-from spk2img.model.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
+from spk2img.model.checkpoint import (
+    config_from_dict,
+    config_to_dict,
+    load_checkpoint,
+    save_checkpoint,
+)
 from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
 
@@ -123,6 +128,11 @@ def train(cfg: TrainConfig) -> dict:
     last = run_dir / "last.pt"
     if last.is_file():
         state = load_checkpoint(last)
+        if config_from_dict(state["config"]) != model.config:
+            raise InputError(
+                f"{last} holds another shape than --member {cfg.member} has now: continue it "
+                "with the code that started it, or train in a new --run-dir"
+            )
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         start, wall = int(state["step"]), float(state["wall_s"])
