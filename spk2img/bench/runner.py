@@ -53,7 +53,7 @@ FULL = Scale(
     *REFERENCE_SIZE,
     per_class=4,
     repeats=5,
-    members=("paper", "small", "tiny"),
+    members=("paper", "small", "lite", "tiny"),
     service_requests=24,
     stream_frames=1000,
 )

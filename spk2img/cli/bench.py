@@ -52,7 +52,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 3)")
     p.add_argument(
         "--members",
-        help="family members with random weights (default paper,small,tiny; --quick: tiny)",
+        help="family members with random weights (default paper,small,lite,tiny; --quick: tiny)",
     )
     p.add_argument(
         "--trained",
