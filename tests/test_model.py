@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from spk2img.core.block_model import BASE_CODE, head_inputs
+from spk2img.core.light import SPIKE_RATE
 from spk2img.export.onnx_export import random_source
 from spk2img.model.block_split import (
     AlignFuseHead,
@@ -253,7 +254,7 @@ def test_an_intensity_base_starts_at_the_blocks_mean_rate_and_splits_like_the_ne
     rate = torch.stack([spikes[:, s : s + config.block_frames].mean(1) for s in starts]).mean(0)
     with torch.no_grad():
         image, _ = build_model(config).eval()(spikes)
-        torch.testing.assert_close(image[:, 0], (rate / 0.6).clamp(0, 1), atol=1e-6, rtol=0)
+        torch.testing.assert_close(image[:, 0], (rate / SPIKE_RATE).clamp(0, 1), atol=1e-6, rtol=0)
 
         model = random_source("lite", seed=1).model
         encoder, head = BlockEncoder(model), AlignFuseHead(model)

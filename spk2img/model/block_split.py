@@ -73,13 +73,11 @@ def repeated_code(
 ) -> tuple[torch.Tensor, ...]:
     """One block's code as a whole window's head inputs (every block the same): the example
     inputs of tracing and of counting the head's cost."""
-    stacks = role_blocks(config.num_blocks)
-    names = config_code_names(config)
+    blocks = role_blocks(config.num_blocks)
+    stacks = [blocks[name.split("_")[0]] for name in config_code_names(config)]
     return tuple(
-        code
-        if (n := stacks[name.split("_")[0]]) is None
-        else code.unsqueeze(1).expand(-1, n, *code.shape[1:])
-        for code, name in zip(codes, names, strict=True)
+        code if n is None else code.unsqueeze(1).expand(-1, n, *code.shape[1:])
+        for code, n in zip(codes, stacks, strict=True)
     )
 
 
