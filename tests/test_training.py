@@ -90,6 +90,29 @@ def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):
         train(TrainConfig(run_dir=str(tmp_path), steps=2, **TINY_RUN))
 
 
+def test_init_starts_a_run_from_another_runs_weights(tmp_path):
+    """``--init``: the new run's first loss is the old run's loss on the same batch with the
+    old weights; the checkpoints say where the weights came from; another shape is refused."""
+    source = tmp_path / "source"
+    train(TrainConfig(run_dir=str(source), steps=3, **TINY_RUN))
+    tuned = tmp_path / "tuned"
+    train(TrainConfig(run_dir=str(tuned), steps=2, init=str(source / "last.pt"), **TINY_RUN))
+    model = load_model(source / "last.pt")
+    spikes, truth = (torch.from_numpy(a) for a in SampleMaker(16, seed=0).batch(0, 2))
+    with torch.no_grad():
+        expected = hierarchical_l1(*model.train()(spikes), truth).item()
+    assert _records(tuned, "train")[0]["loss"] == pytest.approx(expected, rel=1e-4)
+    state = load_checkpoint(tuned / "last.pt")
+    assert state["step"] == 2 and state["init_from"]["step"] == 3
+    assert state["init_from"]["path"] == str(source / "last.pt")
+    small = TINY_RUN | {"member": "small", "run_dir": str(tmp_path / "x")}
+    with pytest.raises(InputError, match="another shape"):
+        train(TrainConfig(steps=1, init=str(source / "last.pt"), **small))
+    missing = TINY_RUN | {"run_dir": str(tmp_path / "y"), "init": str(tmp_path / "no.pt")}
+    with pytest.raises(InputError, match="not a readable checkpoint"):
+        train(TrainConfig(steps=1, **missing))
+
+
 def test_validation_logs_network_and_baselines(tmp_path):
     train(TrainConfig(run_dir=str(tmp_path), steps=4, **TINY_RUN))
     (base,) = _records(tmp_path, "baselines")

@@ -43,6 +43,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ("checkpoint-every", int),
         ("threads", int),
         ("log-every", int),
+        ("init", str),
     ]:
         p.add_argument(f"--{name}", type=kind, default=None)
     p.add_argument(

@@ -58,6 +58,7 @@ RELEASE_KEYS = (
     "val_set",
     "commit",
     "hardware",
+    "init_from",
 )
 
 

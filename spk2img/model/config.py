@@ -103,7 +103,6 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         reliability_hidden=24,
         fusion_hidden=64,
         feature_stride=2,
-        intensity_base=True,
     ),
     "tiny": replace(
         PAPER,

@@ -84,6 +84,10 @@ class TrainConfig:
     """Steps between metrics lines."""
     progress: bool = True
     """Show a progress bar on stderr."""
+    init: str = ""
+    """A checkpoint of the same member whose weights start the run (fine-tuning, e.g. the
+    shipped model on your own footage); the optimiser and the schedule start afresh. Empty:
+    random weights from ``seed``. Not read when ``run_dir`` holds a ``last.pt`` to resume."""
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
@@ -136,6 +140,11 @@ def train(cfg: TrainConfig) -> dict:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         start, wall = int(state["step"]), float(state["wall_s"])
+        init_from = state.get("init_from")
+    elif cfg.init:
+        init_from = load_initial_weights(model, cfg.init)
+    else:
+        init_from = None
     commit = state.get("commit", "unknown") if start else git_commit()  # the code that trains
     net = DistributedDataParallel(model) if run.world > 1 else model
     index = SourceIndex.scan(cfg.data, cfg.patch, HELD_OUT) if cfg.data else None
@@ -178,6 +187,7 @@ def train(cfg: TrainConfig) -> dict:
             train_config=dataclasses.asdict(cfg),
             commit=commit,
             hardware=describe_hardware(device, cfg.threads),
+            init_from=init_from,
             **extra,
         )
 
@@ -251,6 +261,25 @@ def train(cfg: TrainConfig) -> dict:
             log.write(kind="replicas", world_size=run.world, max_abs_diff=diff)
     run.close()
     return val
+
+
+def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
+    """Load the weights of checkpoint ``path`` into ``model`` (same shape) and return where
+    they came from: the path, and the step, wall time, member and commit that trained them."""
+    try:
+        state = load_checkpoint(path)
+    except (FileNotFoundError, OSError, RuntimeError) as exc:
+        raise InputError(f"--init {path}: not a readable checkpoint ({exc})") from exc
+    if "config" not in state or config_from_dict(state["config"]) != model.config:
+        raise InputError(f"--init {path}: another shape than the member being trained")
+    model.load_state_dict(state["model"])
+    return {
+        "path": str(path),
+        "member": state.get("member"),
+        "step": int(state.get("step", 0)),
+        "wall_s": float(state.get("wall_s", 0.0)),
+        "commit": state.get("commit", "unknown"),
+    }
 
 
 def describe_hardware(device: torch.device, threads: int) -> str:
