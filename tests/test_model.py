@@ -10,17 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from spk2img.core.block_model import BASE_CODE, head_inputs
-from spk2img.core.light import SPIKE_RATE
-from spk2img.export.onnx_export import random_source
-from spk2img.model.block_split import (
-    AlignFuseHead,
-    BlockEncoder,
-    config_code_names,
-    key_terms,
-    neighbour_terms,
-)
-from spk2img.model.checkpoint import config_from_dict, config_to_dict
+from spk2img.model.block_split import key_terms, neighbour_terms
 from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
@@ -240,35 +230,3 @@ def test_stream_macs_split_the_network():
         whole = count_macs(config, 40, 48)
         assert 0 < head < whole < 5 * encoder + head
         assert (5 * encoder + head - whole) / whole < 0.05
-
-
-def test_an_intensity_base_starts_at_the_blocks_mean_rate_and_splits_like_the_network():
-    """``lite`` adds the mean over its five blocks of each block's spike rate to the head's
-    output, whose last conv starts at zero: a fresh network is exactly that mean rate. With
-    random weights, its block encoder and head give what its one-shot forward gives."""
-    config = get_config("lite")
-    assert config.intensity_base and not get_config("small").intensity_base
-    torch.manual_seed(0)
-    spikes = (torch.rand(2, 41, 21, 30) < torch.rand(1, 1, 21, 30)).float()  # odd size
-    starts = range(0, config.num_blocks * config.block_stride, config.block_stride)
-    rate = torch.stack([spikes[:, s : s + config.block_frames].mean(1) for s in starts]).mean(0)
-    with torch.no_grad():
-        image, _ = build_model(config).eval()(spikes)
-        torch.testing.assert_close(image[:, 0], (rate / SPIKE_RATE).clamp(0, 1), atol=1e-6, rtol=0)
-
-        model = random_source("lite", seed=1).model
-        encoder, head = BlockEncoder(model), AlignFuseHead(model)
-        codes = [encoder(spikes[:1, s : s + config.block_frames]) for s in starts]  # batch 1
-        names = config_code_names(config)
-        assert names[-1] == BASE_CODE and len(codes[0]) == len(names)
-        inputs = head_inputs([tuple(c[0].numpy() for c in code) for code in codes], names, 5)
-        split = head(*(torch.from_numpy(inputs[name]) for name in names))[..., :21, :30]
-        whole, _ = model(spikes[:1])
-    torch.testing.assert_close(split, whole, atol=1e-5, rtol=0)
-    assert whole.std() > 0.05  # the head's random correction moved it off the base
-
-
-def test_checkpoints_from_before_the_intensity_base_load_without_it():
-    stored = config_to_dict(get_config("small"))
-    del stored["intensity_base"]
-    assert config_from_dict(stored) == get_config("small")

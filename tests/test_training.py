@@ -84,7 +84,7 @@ def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):
     is refused, not loaded into a network it does not describe."""
     train(TrainConfig(run_dir=str(tmp_path), steps=1, **TINY_RUN))
     state = load_checkpoint(tmp_path / "last.pt")
-    state["config"]["intensity_base"] = True
+    state["config"]["channels"] = 16
     save_checkpoint(tmp_path / "last.pt", **state)
     with pytest.raises(InputError, match="another shape"):
         train(TrainConfig(run_dir=str(tmp_path), steps=2, **TINY_RUN))

@@ -29,15 +29,9 @@ CODE_ROLES = ("feat", "nbr", "key")
 """A block code's parts: feature pyramid, offset-conv terms as a neighbour and as the key."""
 
 
-BASE_CODE = "base"
-"""The code of members with an intensity base: the block's mean spike rate ``(1, hp, wp)``."""
-
-
-def code_names(levels: int, base: bool = False) -> list[str]:
-    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``,
-    then ``base`` if the member has an intensity base."""
-    names = [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
-    return [*names, BASE_CODE] if base else names
+def code_names(levels: int) -> list[str]:
+    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``."""
+    return [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
 
 
 class BlockCodec(Protocol):
@@ -108,9 +102,7 @@ class OnnxBlockCodec:
         self.block_frames = int(config["block_frames"])
         self.block_stride = int(config["block_stride"])
         self.num_blocks = int(config["num_blocks"])
-        self.names = code_names(
-            int(config["pyramid_levels"]), bool(config.get("intensity_base", False))
-        )
+        self.names = code_names(int(config["pyramid_levels"]))
 
     def encode(self, block: np.ndarray) -> BlockCode:
         feeds = {"block": np.ascontiguousarray(block[None], np.float32)}
@@ -124,9 +116,9 @@ class OnnxBlockCodec:
 
 
 def head_inputs(codes: Sequence[BlockCode], names: list[str], num_blocks: int) -> dict:
-    """The head's inputs from a window's block codes: every block's ``feat_l*`` (and
-    ``base``) stacked ``(1, blocks, c, h, w)``, the neighbours' ``nbr_l*``
-    ``(1, blocks - 1, ...)``, the key's ``key_l*`` ``(1, c, h, w)``."""
+    """The head's inputs from a window's block codes: every block's ``feat_l*`` stacked
+    ``(1, blocks, c, h, w)``, the neighbours' ``nbr_l*`` ``(1, blocks - 1, ...)``, the key's
+    ``key_l*`` ``(1, c, h, w)``."""
     if len(codes) != num_blocks:
         raise ValueError(f"the head takes {num_blocks} block codes, got {len(codes)}")
     key = num_blocks // 2
@@ -134,7 +126,7 @@ def head_inputs(codes: Sequence[BlockCode], names: list[str], num_blocks: int) -
     feeds = {}
     for index, name in enumerate(names):
         role = name.split("_")[0]
-        if role in ("feat", BASE_CODE):
+        if role == "feat":
             feeds[name] = np.stack([code[index] for code in codes])[None]
         elif role == "nbr":
             feeds[name] = np.stack([code[index] for code in neighbours])[None]

@@ -33,17 +33,11 @@ import numpy as np
 import torch
 from torch.export import Dim
 
-from spk2img.core.block_model import BASE_CODE, OnnxBlockCodec, block_graph_paths
+from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths, code_names
 from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.stream import collect, frame_chunks, run_stream
 from spk2img.core.windows import NET_WINDOW, CenterPlan
-from spk2img.model.block_split import (
-    AlignFuseHead,
-    BlockEncoder,
-    config_code_names,
-    repeated_code,
-    role_blocks,
-)
+from spk2img.model.block_split import AlignFuseHead, BlockEncoder, repeated_code, role_blocks
 from spk2img.model.network import Spk2ImgNet
 
 from .onnx_export import (
@@ -66,19 +60,14 @@ def export_block_graphs(
     (``<stem>.encoder.onnx``, ``<stem>.head.onnx``); returns ``{part: path}``."""
     model = source.model.eval()
     cfg = model.config
-    names = config_code_names(cfg)
+    levels = cfg.pyramid_levels
+    names = code_names(levels)
     stacked = role_blocks(cfg.num_blocks)  # blocks each role stacks in the head's inputs
     roles = [name.split("_")[0] for name in names]
     paths = block_graph_paths(out)
-    # (batch, channels, height, width) dims of each code: a pyramid level's are named after the
-    # level; the base is at the padded full size
+    # (batch, c, h_l, w_l) dims of each code, named after its level
     code_dims = {
-        name: (
-            ["batch", 1, "padded_height", "padded_width"]
-            if name == BASE_CODE
-            else ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"]
-        )
-        for name in names
+        name: ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"] for name in names
     }
 
     block = torch.zeros(
@@ -94,14 +83,11 @@ def export_block_graphs(
 
     # the head takes every block's pyramid, the neighbours' terms and the key's terms
     with torch.no_grad():
-        examples = repeated_code(BlockEncoder(model)(block), cfg)
+        examples = repeated_code(BlockEncoder(model)(block), cfg.num_blocks)
     batch, coarse_h, coarse_w = Dim("batch"), Dim("coarse_height"), Dim("coarse_width")
     shapes = []
     for name, role in zip(names, roles, strict=True):
-        if name == BASE_CODE:  # the padded full size
-            scale = 2 ** (cfg.pyramid_levels - 1) * cfg.feature_stride
-        else:  # level l is 2**(L-l) times the coarsest
-            scale = 2 ** (cfg.pyramid_levels - int(name[-1]))
+        scale = 2 ** (levels - int(name[-1]))  # level l is 2**(L-l) times the coarsest
         first = 2 if stacked[role] is None else 3  # the spatial axes
         shapes.append({0: batch, first: scale * coarse_h, first + 1: scale * coarse_w})
     head_io = GraphIO(names, [IMAGE_OUTPUT], (tuple(shapes),))

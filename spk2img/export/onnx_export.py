@@ -119,8 +119,7 @@ def random_source(member: str, seed: int = 0, name: str | None = None) -> Export
 
     Every layer gets PyTorch's default initialisation from ``torch.manual_seed(seed)``,
     including the offset/mask predictors of the deformable convs (which training starts at
-    zero) and the head's last conv of members with an intensity base (likewise), the former
-    scaled by :data:`RANDOM_OFFSET_GAIN`: the random network's offsets are then a few
+    zero), scaled by :data:`RANDOM_OFFSET_GAIN`: the random network's offsets are then a few
     pixels, fractional and spatially varying, and its masks spread over (0, 1), so the exported
     graph's deformable sampling is really exercised (borders included).
     """
@@ -136,8 +135,6 @@ def random_source(member: str, seed: int = 0, name: str | None = None) -> Export
                 with torch.no_grad():
                     module.conv_offset_mask.weight.mul_(RANDOM_OFFSET_GAIN)
                     module.conv_offset_mask.bias.mul_(RANDOM_OFFSET_GAIN)
-        if model.config.intensity_base:  # its head starts at zero (a correction of the base)
-            model.fusion.reconstruct[-1].reset_parameters()
     finally:
         torch.random.set_rng_state(generator_state)
     source = f"random weights, seed {seed}"

@@ -12,9 +12,7 @@ the feature stride, each further level half the one before):
 - ``nbr_l{l}``, ``key_l{l}`` ``(b, c, h_l, w_l)``: its terms of level ``l``'s first offset conv
   as a neighbour and as the key. That conv is linear in ``[neighbour, key]``, so its output on a
   pair is the neighbour's term plus the key's, and each block's terms are computed once, for
-  whichever pairs it takes part in;
-- ``base`` ``(b, 1, hp, wp)``, members with an intensity base only: the block's mean spike rate
-  (the head adds the mean over the window's blocks).
+  whichever pairs it takes part in.
 """
 
 from __future__ import annotations
@@ -23,18 +21,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from spk2img.core.block_model import BASE_CODE, CODE_ROLES, code_names
+from spk2img.core.block_model import CODE_ROLES
 
 from .alignment import PCDAlignment
-from .config import Spk2ImgNetConfig
-from .network import (
-    Spk2ImgNet,
-    pad_to_multiple,
-    per_neighbour,
-    spike_rate,
-    to_intensity,
-    without_key,
-)
+from .network import Spk2ImgNet, pad_to_multiple, per_neighbour, to_intensity, without_key
 
 
 def neighbour_terms(align: PCDAlignment, pyramid: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -60,21 +50,14 @@ def key_terms(align: PCDAlignment, pyramid: list[torch.Tensor]) -> list[torch.Te
 
 def role_blocks(num_blocks: int) -> dict[str, int | None]:
     """Blocks each code role stacks in the head's inputs (None: a single block, no axis)."""
-    return {"feat": num_blocks, "nbr": num_blocks - 1, "key": None, BASE_CODE: num_blocks}
+    return {"feat": num_blocks, "nbr": num_blocks - 1, "key": None}
 
 
-def config_code_names(config: Spk2ImgNetConfig) -> list[str]:
-    """The code names (:func:`~spk2img.core.block_model.code_names`) of a member."""
-    return code_names(config.pyramid_levels, config.intensity_base)
-
-
-def repeated_code(
-    codes: tuple[torch.Tensor, ...], config: Spk2ImgNetConfig
-) -> tuple[torch.Tensor, ...]:
+def repeated_code(codes: tuple[torch.Tensor, ...], num_blocks: int) -> tuple[torch.Tensor, ...]:
     """One block's code as a whole window's head inputs (every block the same): the example
     inputs of tracing and of counting the head's cost."""
-    blocks = role_blocks(config.num_blocks)
-    stacks = [blocks[name.split("_")[0]] for name in config_code_names(config)]
+    levels = len(codes) // len(CODE_ROLES)
+    stacks = [role_blocks(num_blocks)[role] for role in CODE_ROLES for _ in range(levels)]
     return tuple(
         code if n is None else code.unsqueeze(1).expand(-1, n, *code.shape[1:])
         for code, n in zip(codes, stacks, strict=True)
@@ -92,11 +75,9 @@ class BlockEncoder(nn.Module):
 
     def forward(self, block: torch.Tensor) -> tuple[torch.Tensor, ...]:
         net = self.model
-        padded = pad_to_multiple(block, net.config.size_multiple)
-        weighted, _ = net.sali(padded)
+        weighted, _ = net.sali(pad_to_multiple(block, net.config.size_multiple))
         pyramid = net.block_pyramid(weighted)
-        code = (*pyramid, *neighbour_terms(net.align, pyramid), *key_terms(net.align, pyramid))
-        return (*code, spike_rate(padded)) if net.config.intensity_base else code
+        return (*pyramid, *neighbour_terms(net.align, pyramid), *key_terms(net.align, pyramid))
 
 
 class AlignFuseHead(nn.Module):
@@ -104,9 +85,8 @@ class AlignFuseHead(nn.Module):
 
     Inputs in the order of :func:`~spk2img.core.block_model.code_names`: ``feat_l*``
     ``(b, blocks, c, h_l, w_l)`` (every block in temporal order), ``nbr_l*``
-    ``(b, blocks - 1, c, h_l, w_l)`` (the neighbours in order), ``key_l*``
-    ``(b, c, h_l, w_l)`` (the key block's) and, with an intensity base, ``base``
-    ``(b, blocks, 1, hp, wp)``.
+    ``(b, blocks - 1, c, h_l, w_l)`` (the neighbours in order) and ``key_l*``
+    ``(b, c, h_l, w_l)`` (the key block's).
     """
 
     def __init__(self, model: Spk2ImgNet) -> None:
@@ -129,6 +109,4 @@ class AlignFuseHead(nn.Module):
             per_neighbour(key_feat, neighbours),
         ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
         pred = net.fuse(list(aligned.unbind(1)), key_feat)
-        if cfg.intensity_base:
-            pred = pred + codes[-1].mean(1)  # the mean of the blocks' spike rates
         return to_intensity(pred, pred.shape[-2], pred.shape[-1], training=False)

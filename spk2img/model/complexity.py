@@ -48,7 +48,7 @@ def count_stream_macs(
         block = torch.zeros(1, config.block_frames, height, width)
     codes: list[torch.Tensor] = []
     encoder = _macs(lambda: codes.extend(BlockEncoder(model)(block)))
-    inputs = repeated_code(tuple(codes), config)
+    inputs = repeated_code(tuple(codes), config.num_blocks)
     head = _macs(lambda: AlignFuseHead(model)(*inputs))
     return encoder, head
 

@@ -46,12 +46,6 @@ class Spk2ImgNetConfig:
     unshuffle), runs everything after SALI at ``1/s`` of the size and unfolds the fusion's
     ``s * s`` output channels into the full-size image (pixel shuffle)."""
 
-    intensity_base: bool = False
-    """Add the window's mean spike rate (the mean over its blocks of each block's spikes per
-    frame, full size) to the head's output, so that the network predicts a correction of it: a
-    global residual that starts still regions exact and keeps full-size detail past a
-    ``feature_stride`` > 1 (False as published)."""
-
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
             raise ValueError(f"num_blocks must be odd, got {self.num_blocks}")
@@ -118,8 +112,7 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
 }
 """The named family members, largest first: ``paper`` (3.90 M parameters), ``small`` (0.49 M,
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
-after SALI, plus the window's mean spike rate at full size: a quarter of ``small``'s cost),
-``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
+after SALI: a quarter of ``small``'s cost), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
 
 
 def get_config(name: str) -> Spk2ImgNetConfig:

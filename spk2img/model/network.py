@@ -50,9 +50,6 @@ class Spk2ImgNet(nn.Module):
         self.fusion = ReliabilityFusion(
             c, config.num_blocks, config.reliability_hidden, config.fusion_hidden, stride**2
         )
-        if config.intensity_base:  # the head starts as the identity on the base
-            nn.init.zeros_(self.fusion.reconstruct[-1].weight)
-            nn.init.zeros_(self.fusion.reconstruct[-1].bias)
 
     def forward(self, spikes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Reconstruct the frame at the centre of a spike window.
@@ -98,8 +95,6 @@ class Spk2ImgNet(nn.Module):
 
         # reliability fusion -> 0.6 * I
         pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0])  # (b, 1, hp, wp)
-        if cfg.intensity_base:
-            pred = pred + spike_rate(blocks).unflatten(0, (-1, cfg.num_blocks)).mean(1)
         image = to_intensity(pred, h, w, self.training)
         estimates = estimates.unflatten(0, (-1, cfg.num_blocks))[..., :h, :w] / SPIKE_RATE
         return image, estimates
@@ -114,12 +109,6 @@ class Spk2ImgNet(nn.Module):
         """The aligned neighbours (temporal order) and the key's level-1 features, each
         ``(b, c, h_f, w_f)`` -> the prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
         return F.pixel_shuffle(self.fusion(aligned, key_feat), self.config.feature_stride)
-
-
-def spike_rate(blocks: torch.Tensor) -> torch.Tensor:
-    """``(b, frames, h, w)`` spikes -> ``(b, 1, h, w)`` mean spikes per frame (``0.6 * I`` of a
-    still scene; the intensity base of :attr:`Spk2ImgNetConfig.intensity_base`)."""
-    return blocks.mean(1, keepdim=True)
 
 
 def per_neighbour(tensor: torch.Tensor, neighbours: int) -> torch.Tensor:

@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from spk2img.core.block_model import head_inputs
+from spk2img.core.block_model import code_names, head_inputs
 
-from .block_split import AlignFuseHead, BlockEncoder, config_code_names
+from .block_split import AlignFuseHead, BlockEncoder
 from .checkpoint import load_model
 
 DEFAULT_CHECKPOINT = (
@@ -45,7 +45,7 @@ class TorchPredictor:
     @torch.inference_mode()
     def head(self, codes, height: int, width: int) -> np.ndarray:
         """Five block codes in temporal order -> ``(height, width)`` linear intensity."""
-        names = config_code_names(self.model.config)
+        names = code_names(self.model.config.pyramid_levels)
         inputs = head_inputs(codes, names, self.num_blocks)
         image = self.head_module(*(torch.from_numpy(inputs[name]) for name in names))
         return image[0, 0, :height, :width].numpy()
