@@ -111,6 +111,14 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     tc = state["train_config"]
     member = state["member"]
     history_line = f"- history: {history}\n" if history else ""
+    init = state.get("init_from")
+    init_line = (
+        f"- started from `{Path(init['path']).name}` ({init['member']}, step {init['step']}, "
+        f"{init['wall_s'] / 3600:.2f} h of training at commit {init['commit'][:7]}): `--init`\n"
+        if init
+        else ""
+    )
+    init_flag = f" --init {Path(init['path']).name}" if init else ""
     resume = f"mkdir -p runs/{run_dir.name} && cp {run_dir}/last.pt runs/{run_dir.name}/"
     data_flags = " ".join(f"--data {Path(d).name}/" for d in tc.get("data", []))
     content = (
@@ -184,9 +192,9 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
   optimiser steps on {state.get("hardware", f"{tc['threads']} CPU threads")}.
 - command: `spk2img train --member {member} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]} {data_flags}
-  --threads {tc["threads"]}`
-{history_line}- to continue: `{resume}`, then the command above (batches are a function of
-  seed and step).
+  --threads {tc["threads"]}{init_flag}`
+{init_line}{history_line}- to continue: `{resume}`, then the command above (batches are a function
+  of seed and step).
 
 {body}
 ## Validation during training
