@@ -11,6 +11,7 @@ import torch
 import torch.nn.functional as F
 
 from spk2img.model.block_split import key_terms, neighbour_terms
+from spk2img.model.checkpoint import config_from_dict, config_to_dict
 from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
@@ -230,3 +231,15 @@ def test_stream_macs_split_the_network():
         whole = count_macs(config, 40, 48)
         assert 0 < head < whole < 5 * encoder + head
         assert (5 * encoder + head - whole) / whole < 0.05
+
+
+def test_stored_configs_load_with_retired_fields_only_where_they_change_nothing():
+    """Checkpoints of the intensity-base era store ``intensity_base``: false loads as today's
+    network, true (a network no longer built) and unknown fields are refused by name."""
+    stored = config_to_dict(get_config("lite"))
+    assert config_from_dict(stored) == get_config("lite")
+    assert config_from_dict(stored | {"intensity_base": False}) == get_config("lite")
+    with pytest.raises(ValueError, match="intensity_base"):
+        config_from_dict(stored | {"intensity_base": True})
+    with pytest.raises(ValueError, match="does not know.*'wings'"):
+        config_from_dict(stored | {"wings": 2})

@@ -18,7 +18,24 @@ def config_to_dict(config: Spk2ImgNetConfig) -> dict:
     }
 
 
+RETIRED_FIELDS = {"intensity_base": False}
+"""Config fields of earlier versions, with the value under which they built today's network."""
+
+
 def config_from_dict(data: dict) -> Spk2ImgNetConfig:
+    """The config a checkpoint stores; a retired field is dropped where its value is the one
+    that builds today's network, and refused (``ValueError``) where it is not."""
+    data = dict(data)
+    for name, neutral in RETIRED_FIELDS.items():
+        if name in data and data.pop(name) != neutral:
+            raise ValueError(
+                f"the checkpoint's network has {name}, which this spk2img no longer builds"
+            )
+    known = {f.name for f in dataclasses.fields(Spk2ImgNetConfig)}
+    if unknown := sorted(set(data) - known):
+        raise ValueError(
+            f"the checkpoint's config has fields this spk2img does not know: {unknown}"
+        )
     return Spk2ImgNetConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()})
 
 
