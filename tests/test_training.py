@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
+from spk2img.cli import main
 from spk2img.core.errors import InputError
+from spk2img.core.simulator import SensorConfig
 from spk2img.model.checkpoint import load_checkpoint, load_model, save_checkpoint
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_l1
@@ -48,6 +50,20 @@ def test_batches_are_a_function_of_seed_and_step():
     assert not np.array_equal(a[0], c[0])
     assert a[0].shape == (2, 41, 16, 16) and a[1].shape == (2, 5, 16, 16)
     assert set(np.unique(a[0])) <= {0.0, 1.0}
+
+
+def test_the_ideal_share_sets_how_many_samples_the_noise_free_sensor_films():
+    """``ideal_share`` 1: every sample noise-free; 0: every one real-like; 0.5 about half.
+    A share outside [0, 1] is refused (the CLI turns it into a message)."""
+    real = SensorConfig.real()
+    for share, expected in ((1.0, 1.0), (0.0, 0.0), (0.5, 0.5)):
+        maker = SampleMaker(16, seed=0, real_sensor=real, ideal_share=share)
+        rngs = (np.random.default_rng([9, k]) for k in range(400))
+        ideal = np.mean([maker.draw_sensor(rng) == SensorConfig.ideal() for rng in rngs])
+        assert ideal == pytest.approx(expected, abs=0.08)
+    with pytest.raises(ValueError, match="ideal-share"):
+        TrainConfig(ideal_share=1.5)
+    assert main(["train", "--ideal-share", "-0.1", "--steps", "1"]) == 2
 
 
 def test_worker_processes_make_the_same_batches_in_order():

@@ -36,6 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ("seed", int),
         ("data-mix", str),
         ("sensor-preset", str),
+        ("ideal-share", float),
         ("workers", int),
         ("device", str),
         ("val-every", int),

@@ -71,8 +71,10 @@ class SampleMaker:
         seed, rank: the run's seed and this process's data-parallel rank.
         mix: shares of procedural, photo and clip content.
         index: the natural content (None: procedural only, whatever ``mix`` says).
-        real_sensor: the real-like regime, drawn around it per sample (half the samples);
-            None: :meth:`SensorConfig.random`'s real-like draws.
+        real_sensor: the real-like regime, drawn around it per sample (the samples that are
+            not ideal); None: :meth:`SensorConfig.random`'s draws for every sample.
+        ideal_share: share of the samples filmed by the ideal sensor when ``real_sensor`` is
+            given (0.5: half and half; 1: noise-free data only, like simulated datasets).
     """
 
     def __init__(
@@ -83,9 +85,12 @@ class SampleMaker:
         mix: DataMix | None = None,
         index: SourceIndex | None = None,
         real_sensor: SensorConfig | None = None,
+        ideal_share: float = 0.5,
     ):
+        if not 0 <= ideal_share <= 1:
+            raise ValueError(f"the ideal sensor's share must be in [0, 1], got {ideal_share}")
         self.patch, self.seed, self.rank = patch, seed, rank
-        self.index, self.real_sensor = index, real_sensor
+        self.index, self.real_sensor, self.ideal_share = index, real_sensor, ideal_share
         mix = mix or DataMix()
         has_photos, has_clips = bool(index and index.photos), bool(index and index.clips)
         photos, clips = mix.photos * has_photos, mix.clips * has_clips
@@ -116,10 +121,12 @@ class SampleMaker:
         return augment(spikes, ground_truth(scene, GT_FRAMES), rng)
 
     def draw_sensor(self, rng: np.random.Generator) -> SensorConfig:
-        """Half the time ideal, else the real-like regime (module doc)."""
+        """Ideal with probability ``ideal_share``, else the real-like regime (module doc)."""
         if self.real_sensor is None:
             return SensorConfig.random(rng)
-        return SensorConfig.ideal() if rng.uniform() < 0.5 else self.real_sensor.jittered(rng)
+        if rng.uniform() < self.ideal_share:
+            return SensorConfig.ideal()
+        return self.real_sensor.jittered(rng)
 
     def batch(self, step: int, size: int) -> tuple[np.ndarray, np.ndarray]:
         """``(size, 41, P, P) float32`` spikes and ``(size, 5, P, P) float32`` truth."""

@@ -111,6 +111,7 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     tc = state["train_config"]
     member = state["member"]
     history_line = f"- history: {history}\n" if history else ""
+    ideal_share = tc.get("ideal_share", 0.5)
     init = state.get("init_from")
     init_line = (
         f"- started from `{Path(init['path']).name}` ({init['member']}, step {init['step']}, "
@@ -183,9 +184,10 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
 ## Training
 - data: {content}; a fresh {tc["patch"]}x{tc["patch"]} window for every sample, rotated and
   mirrored at random. Photos under camera motion with moving foreground layers, clips with
-  their real motion interpolated along their optical flow; half the samples filmed by the ideal
-  integrate-and-fire sensor, half by the sensor fitted to a real PKU capture with jittered
-  strengths. Sources and licences of every photo and clip: docs/training_data.md.
+  their real motion interpolated along their optical flow; {ideal_share:.0%} of the samples
+  filmed by the ideal integrate-and-fire sensor, the others by the sensor fitted to a real PKU
+  capture with jittered strengths. Sources and licences of every photo and clip:
+  docs/training_data.md.
 - loss: hierarchical L1 (λ = 0.02); Adam, peak lr {tc["lr"]}, warm-up {tc["warmup_steps"]}
   steps, cosine decay; batch {tc["batch_size"]}; seed {tc["seed"]}.
 - steps: **{state["step"]}** of {tc["steps"]} planned; **{state["wall_s"] / 3600:.2f} h** of

@@ -67,7 +67,10 @@ class TrainConfig:
     """Shares of photo, clip and procedural samples (natural kinds need ``--data``)."""
     sensor_preset: str = ""
     """The real-like regime's sensor preset (JSON of ``spk2img fit-sensor``); empty: the one
-    fitted to a real PKU capture that ships with spk2img. Half the samples are ideal."""
+    fitted to a real PKU capture that ships with spk2img."""
+    ideal_share: float = 0.5
+    """Share of the samples filmed by the noise-free sensor; the others by the real-like one
+    (1: noise-free only, as simulated datasets such as spike-REDS are)."""
     workers: int = 1
     """Processes that make the batches ahead (0: in the training process)."""
     device: str = "cpu"
@@ -88,6 +91,10 @@ class TrainConfig:
     """A checkpoint of the same member whose weights start the run (fine-tuning, e.g. the
     shipped model on your own footage); the optimiser and the schedule start afresh. Empty:
     random weights from ``seed``. Not read when ``run_dir`` holds a ``last.pt`` to resume."""
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.ideal_share <= 1:
+            raise ValueError(f"--ideal-share {self.ideal_share}: must be in [0, 1]")
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
@@ -150,7 +157,7 @@ def train(cfg: TrainConfig) -> dict:
     index = SourceIndex.scan(cfg.data, cfg.patch, HELD_OUT) if cfg.data else None
     real_sensor = load_preset(cfg.sensor_preset or FITTED_PRESET)
     mix = DataMix.parse(cfg.data_mix)
-    maker = SampleMaker(cfg.patch, cfg.seed, run.rank, mix, index, real_sensor)
+    maker = SampleMaker(cfg.patch, cfg.seed, run.rank, mix, index, real_sensor, cfg.ideal_share)
     log = _Log(run_dir / "metrics.jsonl") if run.main else None
     val_sets = {}
     if run.main:
