@@ -127,6 +127,10 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
     missing = TINY_RUN | {"run_dir": str(tmp_path / "y"), "init": str(tmp_path / "no.pt")}
     with pytest.raises(InputError, match="not a readable checkpoint"):
         train(TrainConfig(steps=1, **missing))
+    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint")
+    garbage = missing | {"init": str(tmp_path / "garbage.pt")}
+    with pytest.raises(InputError, match="not a readable checkpoint"):
+        train(TrainConfig(steps=1, **garbage))
 
 
 def test_validation_logs_network_and_baselines(tmp_path):

@@ -13,6 +13,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from pickle import UnpicklingError
 
 import numpy as np
 import torch
@@ -275,9 +276,18 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
     they came from: the path, and the step, wall time, member and commit that trained them."""
     try:
         state = load_checkpoint(path)
-    except (FileNotFoundError, OSError, RuntimeError) as exc:
+        config = config_from_dict(state["config"])
+    except (
+        OSError,
+        RuntimeError,
+        EOFError,
+        UnpicklingError,
+        KeyError,
+        TypeError,
+        ValueError,
+    ) as exc:
         raise InputError(f"--init {path}: not a readable checkpoint ({exc})") from exc
-    if "config" not in state or config_from_dict(state["config"]) != model.config:
+    if config != model.config:
         raise InputError(f"--init {path}: another shape than the member being trained")
     model.load_state_dict(state["model"])
     return {
