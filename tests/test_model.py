@@ -11,7 +11,13 @@ import torch
 import torch.nn.functional as F
 
 from spk2img.model.block_split import key_terms, neighbour_terms
-from spk2img.model.checkpoint import config_from_dict, config_to_dict
+from spk2img.model.checkpoint import (
+    CheckpointError,
+    config_from_dict,
+    config_to_dict,
+    read_network,
+    save_checkpoint,
+)
 from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
@@ -243,3 +249,38 @@ def test_stored_configs_load_with_retired_fields_only_where_they_change_nothing(
         config_from_dict(stored | {"intensity_base": True})
     with pytest.raises(ValueError, match="does not know.*'wings'"):
         config_from_dict(stored | {"wings": 2})
+
+
+def test_checkpoint_reader_round_trips_and_refuses_what_is_not_a_checkpoint(tmp_path):
+    """One loader serves export, ``--init`` and resume: it returns the stored network with its
+    weights, and anything else (missing, corrupt, not a dict, no or a broken config, weights of
+    another shape) is a :class:`CheckpointError` naming the file, never a torch traceback."""
+    torch.manual_seed(0)
+    config = get_config("tiny")
+    model = build_model(config)
+    good = tmp_path / "good.pt"
+    save_checkpoint(good, model=model.state_dict(), config=config_to_dict(config), step=5)
+    loaded, state = read_network(good)
+    assert state["step"] == 5 and not loaded.training
+    for name, tensor in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[name], tensor)
+
+    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint")
+    torch.save([1, 2, 3], tmp_path / "list.pt")
+    save_checkpoint(tmp_path / "no_config.pt", model=model.state_dict())
+    broken = config_to_dict(config) | {"channels": 13}  # not divisible by the groups
+    save_checkpoint(tmp_path / "bad_config.pt", model=model.state_dict(), config=broken)
+    other = config_to_dict(get_config("lite"))
+    save_checkpoint(tmp_path / "other_shape.pt", model=model.state_dict(), config=other)
+    cases = {
+        "missing.pt": "no such checkpoint",
+        "garbage.pt": "not a spk2img training checkpoint",
+        "list.pt": "no state dict",
+        "no_config.pt": "KeyError",
+        "bad_config.pt": "deformable_groups",
+        "other_shape.pt": "RuntimeError",
+    }
+    for name, reason in cases.items():
+        with pytest.raises(CheckpointError, match=reason) as caught:
+            read_network(tmp_path / name)
+        assert name in str(caught.value)

@@ -125,12 +125,17 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
     with pytest.raises(InputError, match="another shape"):
         train(TrainConfig(steps=1, init=str(source / "last.pt"), **small))
     missing = TINY_RUN | {"run_dir": str(tmp_path / "y"), "init": str(tmp_path / "no.pt")}
-    with pytest.raises(InputError, match="not a readable checkpoint"):
+    with pytest.raises(InputError, match="no such checkpoint"):
         train(TrainConfig(steps=1, **missing))
     (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint")
     garbage = missing | {"init": str(tmp_path / "garbage.pt")}
-    with pytest.raises(InputError, match="not a readable checkpoint"):
+    with pytest.raises(InputError, match="not a spk2img training checkpoint"):
         train(TrainConfig(steps=1, **garbage))
+    corrupt_run = tmp_path / "corrupt"  # a run to resume whose last.pt was cut short
+    corrupt_run.mkdir()
+    (corrupt_run / "last.pt").write_bytes((source / "last.pt").read_bytes()[:1000])
+    with pytest.raises(InputError, match="last.pt: not a spk2img training checkpoint"):
+        train(TrainConfig(steps=1, **TINY_RUN | {"run_dir": str(corrupt_run)}))
 
 
 def test_validation_logs_network_and_baselines(tmp_path):

@@ -121,11 +121,11 @@ def cost(weights: Weights, sizes: dict[str, tuple[int, int]]) -> dict:
     """``params`` and ``macs`` per frame at each named ``(height, width)`` of ``sizes``."""
     import torch
 
-    from spk2img.model.checkpoint import config_from_dict, load_checkpoint
+    from spk2img.model.checkpoint import load_checkpoint, stored_config
     from spk2img.model.complexity import count_macs, count_parameters
     from spk2img.model.network import build_model
 
-    config = config_from_dict(load_checkpoint(weights.checkpoint)["config"])
+    config = stored_config(load_checkpoint(weights.checkpoint), weights.checkpoint)
     with torch.device("meta"):
         params = count_parameters(build_model(config))
     macs = {name: count_macs(config, h, w) for name, (h, w) in sizes.items()}

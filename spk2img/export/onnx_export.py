@@ -18,7 +18,6 @@ from collections import Counter
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
-from pickle import UnpicklingError
 
 import onnx
 import torch
@@ -26,7 +25,7 @@ from torch import nn
 
 from spk2img.core.errors import InputError
 from spk2img.core.windows import NET_WINDOW
-from spk2img.model.checkpoint import config_from_dict, load_checkpoint
+from spk2img.model.checkpoint import read_network
 from spk2img.model.config import MEMBERS
 from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.model.network import Spk2ImgNet, build_model
@@ -98,14 +97,7 @@ class ImageOnly(nn.Module):
 def checkpoint_source(path: str | Path, name: str | None = None) -> ExportSource:
     """The network stored in a training checkpoint (its config and weights)."""
     path = Path(path)
-    try:
-        state = load_checkpoint(path)
-        model = Spk2ImgNet(config_from_dict(state["config"]))
-        model.load_state_dict(state["model"])
-    except (KeyError, RuntimeError, TypeError, ValueError, EOFError, UnpicklingError) as exc:
-        first_line = (str(exc).strip().splitlines() or [""])[0][:120]
-        reason = f"{type(exc).__name__}: {first_line}"
-        raise InputError(f"{path}: not a spk2img training checkpoint ({reason})") from exc
+    model, state = read_network(path)
     member = state.get("member") or next(
         (n for n, c in MEMBERS.items() if c == model.config), "custom"
     )

@@ -5,8 +5,11 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
+from pickle import UnpicklingError
 
 import torch
+
+from spk2img.core.errors import InputError
 
 from .config import Spk2ImgNetConfig
 from .network import Spk2ImgNet
@@ -48,20 +51,62 @@ def save_checkpoint(path: str | Path, **state) -> None:
     os.replace(tmp, path)
 
 
+class CheckpointError(InputError):
+    """A file that is not a spk2img training checkpoint this version can read (missing,
+    corrupt, or holding a network it does not build)."""
+
+
+def _not_a_checkpoint(path: str | Path, exc: BaseException) -> CheckpointError:
+    first_line = (str(exc).strip().splitlines() or [""])[0][:120]
+    reason = f"{type(exc).__name__}: {first_line}"
+    return CheckpointError(f"{path}: not a spk2img training checkpoint ({reason})")
+
+
 def load_checkpoint(path: str | Path) -> dict:
-    """Read a checkpoint with ``weights_only=True`` (no arbitrary code is unpickled)."""
+    """Read a checkpoint with ``weights_only=True`` (no arbitrary code is unpickled);
+    :class:`CheckpointError` when ``path`` is missing or torch cannot read it."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"no such checkpoint: {path}")
-    return torch.load(path, map_location="cpu", weights_only=True)
+        raise CheckpointError(f"no such checkpoint: {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except (OSError, RuntimeError, EOFError, UnpicklingError) as exc:
+        raise _not_a_checkpoint(path, exc) from exc
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{path}: not a spk2img training checkpoint (no state dict)")
+    return state
+
+
+def stored_config(state: dict, path: str | Path) -> Spk2ImgNetConfig:
+    """The config of the network checkpoint ``state`` (read from ``path``) stores;
+    :class:`CheckpointError` when it has none or one this spk2img cannot build."""
+    try:
+        return config_from_dict(state["config"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise _not_a_checkpoint(path, exc) from exc
+
+
+def load_weights(model: Spk2ImgNet, state: dict, path: str | Path) -> None:
+    """Copy checkpoint ``state``'s weights into ``model`` (built from :func:`stored_config`);
+    :class:`CheckpointError` when they are missing or do not fit it."""
+    try:
+        model.load_state_dict(state["model"])
+    except (KeyError, RuntimeError, TypeError) as exc:
+        raise _not_a_checkpoint(path, exc) from exc
+
+
+def read_network(path: str | Path) -> tuple[Spk2ImgNet, dict]:
+    """The network a checkpoint stores (its config and weights, in eval mode) and the whole
+    stored state; :class:`CheckpointError` for anything that is not such a checkpoint."""
+    state = load_checkpoint(path)
+    model = Spk2ImgNet(stored_config(state, path))
+    load_weights(model, state, path)
+    return model.eval(), state
 
 
 def load_model(path: str | Path) -> Spk2ImgNet:
-    """The network stored in a checkpoint (its config and weights), in eval mode."""
-    state = load_checkpoint(path)
-    model = Spk2ImgNet(config_from_dict(state["config"]))
-    model.load_state_dict(state["model"])
-    return model.eval()
+    """The network stored in a checkpoint, in eval mode (:func:`read_network`)."""
+    return read_network(path)[0]
 
 
 RELEASE_KEYS = (

@@ -29,7 +29,7 @@ from spk2img.core.evaluation import (
 from spk2img.core.onnx_backend import OnnxModel
 from spk2img.core.spikes import as_spike_array, read_spikes
 from spk2img.core.windows import NET_WINDOW
-from spk2img.model.checkpoint import config_from_dict, load_checkpoint
+from spk2img.model.checkpoint import load_checkpoint, stored_config
 from spk2img.model.complexity import count_macs, count_parameters
 from spk2img.model.network import Spk2ImgNet
 
@@ -100,7 +100,7 @@ def _gains(scores: dict) -> str:
 
 def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, history: str) -> str:
     state = load_checkpoint(checkpoint)
-    config = config_from_dict(state["config"])
+    config = stored_config(state, checkpoint)
     params = count_parameters(Spk2ImgNet(config))
     macs = count_macs(config)
     graph = OnnxModel(onnx_path, threads=1).metadata.get("graph", "grid_sample")

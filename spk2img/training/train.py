@@ -13,7 +13,6 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from pickle import UnpicklingError
 
 import numpy as np
 import torch
@@ -26,10 +25,11 @@ from spk2img.core.evaluation import baseline_scores, network_scorer, score, vali
 from spk2img.core.provenance import git_commit
 from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.model.checkpoint import (
-    config_from_dict,
     config_to_dict,
     load_checkpoint,
+    load_weights,
     save_checkpoint,
+    stored_config,
 )
 from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
@@ -140,12 +140,12 @@ def train(cfg: TrainConfig) -> dict:
     last = run_dir / "last.pt"
     if last.is_file():
         state = load_checkpoint(last)
-        if config_from_dict(state["config"]) != model.config:
+        if stored_config(state, last) != model.config:
             raise InputError(
                 f"{last} holds another shape than --member {cfg.member} has now: continue it "
                 "with the code that started it, or train in a new --run-dir"
             )
-        model.load_state_dict(state["model"])
+        load_weights(model, state, last)
         optimizer.load_state_dict(state["optimizer"])
         start, wall = int(state["step"]), float(state["wall_s"])
         init_from = state.get("init_from")
@@ -274,22 +274,10 @@ def train(cfg: TrainConfig) -> dict:
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
     """Load the weights of checkpoint ``path`` into ``model`` (same shape) and return where
     they came from: the path, and the step, wall time, member and commit that trained them."""
-    try:
-        state = load_checkpoint(path)
-        config = config_from_dict(state["config"])
-    except (
-        OSError,
-        RuntimeError,
-        EOFError,
-        UnpicklingError,
-        KeyError,
-        TypeError,
-        ValueError,
-    ) as exc:
-        raise InputError(f"--init {path}: not a readable checkpoint ({exc})") from exc
-    if config != model.config:
+    state = load_checkpoint(path)
+    if stored_config(state, path) != model.config:
         raise InputError(f"--init {path}: another shape than the member being trained")
-    model.load_state_dict(state["model"])
+    load_weights(model, state, path)
     return {
         "path": str(path),
         "member": state.get("member"),
