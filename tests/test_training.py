@@ -63,6 +63,8 @@ def test_the_ideal_share_sets_how_many_samples_the_noise_free_sensor_films():
         assert ideal == pytest.approx(expected, abs=0.08)
     with pytest.raises(ValueError, match="ideal-share"):
         TrainConfig(ideal_share=1.5)
+    with pytest.raises(ValueError, match="ideal-share"):
+        SampleMaker(16, seed=0, ideal_share=-0.5)
     assert main(["train", "--ideal-share", "-0.1", "--steps", "1"]) == 2
 
 

@@ -63,6 +63,12 @@ def augment(spikes: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
     return spikes, truth
 
 
+def check_ideal_share(share: float) -> None:
+    """``ValueError`` unless ``share`` (of the samples the ideal sensor films) is in [0, 1]."""
+    if not 0 <= share <= 1:
+        raise ValueError(f"--ideal-share {share}: the ideal sensor's share must be in [0, 1]")
+
+
 class SampleMaker:
     """Makes training samples (module doc); picklable, so worker processes hold a copy.
 
@@ -87,8 +93,7 @@ class SampleMaker:
         real_sensor: SensorConfig | None = None,
         ideal_share: float = 0.5,
     ):
-        if not 0 <= ideal_share <= 1:
-            raise ValueError(f"the ideal sensor's share must be in [0, 1], got {ideal_share}")
+        check_ideal_share(ideal_share)
         self.patch, self.seed, self.rank = patch, seed, rank
         self.index, self.real_sensor, self.ideal_share = index, real_sensor, ideal_share
         mix = mix or DataMix()

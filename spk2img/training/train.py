@@ -34,7 +34,7 @@ from spk2img.model.checkpoint import (
 from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
 
-from .data import Batches, DataMix, SampleMaker
+from .data import Batches, DataMix, SampleMaker, check_ideal_share
 from .loss import hierarchical_l1
 from .natural_validation import HELD_OUT, natural_validation_set
 from .sources import SourceIndex
@@ -94,8 +94,7 @@ class TrainConfig:
     random weights from ``seed``. Not read when ``run_dir`` holds a ``last.pt`` to resume."""
 
     def __post_init__(self) -> None:
-        if not 0 <= self.ideal_share <= 1:
-            raise ValueError(f"--ideal-share {self.ideal_share}: must be in [0, 1]")
+        check_ideal_share(self.ideal_share)
 
 
 def learning_rate(cfg: TrainConfig, step: int) -> float:
