@@ -110,7 +110,8 @@ class Reconstructor:
             (TFP over 41 frames, no model).
         window: TFP's window in frames (odd; default 41); TFI and TFP accept only centres
             with a full window. The network always uses 41.
-        model: an exported ONNX model (default: the shipped model). With ``block_reuse``, the
+        model: an exported ONNX model file or a shipped model's name (``"default"``, …;
+            :func:`spk2img.core.onnx_backend.shipped_models`). With ``block_reuse``, the
             block encoder and head graphs beside it (``MODEL.encoder.onnx``,
             ``MODEL.head.onnx``) are used when they exist.
         backend: ``"onnx"`` (onnxruntime; the serve extra) or ``"torch"`` (the train extra).

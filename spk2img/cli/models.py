@@ -1,4 +1,5 @@
-"""``spk2img models``: the Spk2ImgNet family members, their parameters and cost per frame."""
+"""``spk2img models``: the Spk2ImgNet family members, their parameters and cost per frame, and
+the trained models this installation ships (``--model NAME`` of reconstruct and serve)."""
 
 from __future__ import annotations
 
@@ -10,9 +11,10 @@ from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, check_size
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "models",
-        help="list the network family: parameters and G MACs per frame",
+        help="list the network family (parameters, G MACs per frame) and the shipped models",
         description="List the Spk2ImgNet family members with their parameter counts and "
-        "multiply-accumulates (MACs) per frame of the given size. GFLOPs = 2 x G MACs.",
+        "multiply-accumulates (MACs) per frame of the given size (GFLOPs = 2 x G MACs), then "
+        "the trained models shipped with spk2img: the names --model takes.",
     )
     p.add_argument("--height", type=int, default=DEFAULT_HEIGHT, help="frame height")
     p.add_argument("--width", type=int, default=DEFAULT_WIDTH, help="frame width")
@@ -41,4 +43,21 @@ def run(args: argparse.Namespace) -> int:
         "block reuse: G MACs per output of a stream with centres 7 frames apart that encodes "
         "each 13-frame block once (one block encoded + align and fuse per output)."
     )
+    print_shipped_models()
     return 0
+
+
+def print_shipped_models() -> None:
+    """The shipped models: name, member, the sensors they were trained on, and their source."""
+    from spk2img.core.onnx_backend import graph_metadata, shipped_models
+
+    shipped = shipped_models()
+    if not shipped:
+        print("\nno trained models are shipped with this installation")
+        return
+    print(f"\n{'shipped model':<14} {'member':<7} {'trained on sensors':<40} source")
+    for name, path in shipped.items():
+        meta = graph_metadata(path)
+        sensors = meta.get("sensors", "unknown")
+        print(f"{name:<14} {meta.get('member', '?'):<7} {sensors:<40} {meta.get('source', '?')}")
+    print("reconstruct and serve take --model NAME; docs/model_card.md says what each is for.")

@@ -47,7 +47,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="for --method net: best (the network everywhere, default), balanced (the network "
         "only on tiles that move or are dim, TFP elsewhere) or fast (TFP over the 41 frames)",
     )
-    p.add_argument("--model", type=Path, help="ONNX model (default: the shipped model)")
+    p.add_argument(
+        "--model",
+        help="ONNX model file, or a shipped model's name (spk2img models lists them; default: "
+        "the shipped default)",
+    )
     p.add_argument("--backend", choices=("onnx", "torch"), default="onnx")
     p.add_argument("--checkpoint", type=Path, help="torch checkpoint for --backend torch")
     p.add_argument("--threads", type=int, default=None, help="inference threads")

@@ -45,9 +45,8 @@ def run(args: argparse.Namespace) -> int:
     from spk2img.service.server import run as serve  # the serve extra (checked by cli.extras)
 
     settings = settings_from_args(args)
-    if not settings.model_path.is_file():
-        hint = DEFAULT_MODEL_HINT if settings.model is None else ""
-        raise InputError(f"no model file at {settings.model_path}{hint}")
+    if not settings.model_path.is_file():  # a --model that is no model raised already
+        raise InputError(f"no model file at {settings.model_path}{DEFAULT_MODEL_HINT}")
     serve(settings)
     return 0
 

@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from .errors import InputError
-from .onnx_backend import create_session, default_model_path, run_session
+from .onnx_backend import create_session, model_path, run_session
 
 PART_FILES = {"encoder": ".encoder.onnx", "head": ".head.onnx"}
 """Suffixes that replace ``.onnx`` of the one-shot graph for its two parts."""
@@ -81,7 +81,7 @@ class OnnxBlockCodec:
         device: str = "cpu",
         io_binding: bool | None = None,
     ):
-        paths = block_graph_paths(model if model is not None else default_model_path())
+        paths = block_graph_paths(model_path(model))
         self.parts = {"encoder": create_session(paths["encoder"], threads, device)}
         self.device = self.parts["encoder"].device
         """The concrete device both graphs run on."""

@@ -53,7 +53,52 @@ class DeviceError(InputError):
 
 def default_model_path() -> Path:
     """The shipped default model's ONNX file (inside the installed package)."""
-    return Path(str(resources.files("spk2img") / "assets" / "models" / DEFAULT_MODEL))
+    return shipped_models_dir() / DEFAULT_MODEL
+
+
+def shipped_models_dir() -> Path:
+    """Where the package keeps its trained models (``spk2img-<name>.onnx`` and its parts)."""
+    return Path(str(resources.files("spk2img") / "assets" / "models"))
+
+
+def shipped_models() -> dict[str, Path]:
+    """``{name: one-shot ONNX file}`` of the trained models this installation ships
+    (``spk2img-default.onnx`` is ``default``; block-graph parts are not models of their own)."""
+    folder = shipped_models_dir()
+    files = sorted(folder.glob("spk2img-*.onnx")) if folder.is_dir() else []
+    return {
+        path.name.removeprefix("spk2img-").removesuffix(".onnx"): path
+        for path in files
+        if path.suffixes == [".onnx"]
+    }
+
+
+def graph_metadata(path: str | Path) -> dict[str, str]:
+    """The ``metadata_props`` of an ONNX file (spk2img.export.metadata), read by onnxruntime."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    session = ort.InferenceSession(str(path), options, providers=[PROVIDERS["cpu"]])
+    return dict(session.get_modelmeta().custom_metadata_map)
+
+
+def model_path(model: str | Path | None) -> Path:
+    """The ONNX file ``model`` names: None is the shipped default, an existing file is itself,
+    else a shipped model's name (:func:`shipped_models`) is its file; :class:`InputError` when
+    it is neither."""
+    if model is None:
+        return default_model_path()
+    path = Path(model)
+    if path.is_file():
+        return path
+    shipped = shipped_models()
+    if str(model) in shipped:
+        return shipped[str(model)]
+    names = ", ".join(shipped) or "none installed"
+    raise InputError(
+        f"no model file {str(model)!r}: give an ONNX file or a shipped model's name ({names})"
+    )
 
 
 def check_device(device: str) -> str:
@@ -243,7 +288,7 @@ class OnnxModel:
         device: str = "cpu",
         io_binding: bool | None = None,
     ):
-        self.path = Path(path) if path is not None else default_model_path()
+        self.path = model_path(path)
         self.runner = create_session(self.path, threads, device)
         self.session = self.runner.session
         self.input_name = self.session.get_inputs()[0].name

@@ -13,6 +13,8 @@ Keys (all values are strings, as ONNX requires):
 - ``weights_sha256``: :func:`weights_sha256` of the network's ``state_dict``.
 - ``source``: the checkpoint's file name and training step, or ``random weights, seed N``
   (then also ``random_seed``: such a graph's weights can be rebuilt from member and seed).
+- ``sensors``: the sensor regimes the weights were trained on (:func:`trained_sensors`;
+  absent for random weights): which streams the model is for.
 - ``graph`` (``grid_sample`` or ``deform_conv``: how the deformable sampling is expressed) and
   ``opset``, set by the exporter; ``precision``: ``fp32``, ``fp16`` or ``int8``, and for the
   last two ``precision_report`` (JSON: error against fp32 and ground truth, see
@@ -65,6 +67,21 @@ def training_commit(checkpoint: Mapping | None) -> tuple[str, str]:
     return (commit, "git HEAD at export") if commit != UNKNOWN else (UNKNOWN, UNKNOWN)
 
 
+def trained_sensors(checkpoint: Mapping) -> str:
+    """The sensor regimes a checkpoint's run trained on, in words: on natural data (``--data``)
+    the noise-free and the fitted real-camera sensor at its ``ideal_share``; on procedural scenes
+    only, :meth:`~spk2img.core.simulator.SensorConfig.random`'s draws."""
+    train_config = checkpoint.get("train_config") or {}
+    if not train_config.get("data"):
+        return "random noise-free and noisy sensors (procedural scenes)"
+    share = float(train_config.get("ideal_share", 0.5))
+    if share == 1:
+        return "noise-free"
+    if share == 0:
+        return "fitted real camera"
+    return f"noise-free {share:.0%}, fitted real camera {1 - share:.0%}"
+
+
 def model_metadata(
     model: Spk2ImgNet, name: str, member: str, source: str, checkpoint: Mapping | None
 ) -> dict[str, str]:
@@ -73,6 +90,7 @@ def model_metadata(
     ``checkpoint`` is the loaded checkpoint dict (for its commit), or None for random weights.
     """
     commit, commit_source = training_commit(checkpoint)
+    sensors = {"sensors": trained_sensors(checkpoint)} if checkpoint else {}
     return {
         "name": name,
         "version": __version__,
@@ -85,4 +103,4 @@ def model_metadata(
         "weights_sha256": weights_sha256(model.state_dict()),
         "source": source,
         "precision": "fp32",
-    }
+    } | sensors

@@ -32,8 +32,10 @@ class ServiceSettings(BaseSettings):
 
     model_config = SettingsConfigDict(env_prefix="SPK2IMG_", extra="ignore")
 
-    model: Path | None = Field(
-        None, description="ONNX model for method net (default: the shipped model)"
+    model: str | Path | None = Field(
+        None,
+        description="ONNX model file for method net, or a shipped model's name (`spk2img "
+        "models` lists them; default: the shipped default)",
     )
     host: str = Field("127.0.0.1", description="interface to listen on")
     port: int = Field(8000, ge=0, le=65535, description="TCP port (0: any free port)")
@@ -128,10 +130,11 @@ class ServiceSettings(BaseSettings):
 
     @property
     def model_path(self) -> Path:
-        """The model file to serve: ``model`` or the shipped default."""
-        from spk2img.core.onnx_backend import default_model_path
+        """The model file to serve: ``model`` (a file or a shipped model's name) or the shipped
+        default; :class:`~spk2img.core.errors.InputError` when there is no such model."""
+        from spk2img.core.onnx_backend import model_path
 
-        return self.model if self.model is not None else default_model_path()
+        return model_path(self.model)
 
     @property
     def job_workers(self) -> int:
