@@ -33,7 +33,7 @@ _.write_spikes  # spk2img.core.spikes: writes a stream as .dat, .npy or .npz
 _.codes_held  # spk2img.core.block_stream.BlockReuseStream: what a stream holds
 
 # called from a shell script
-_.release_checkpoint  # spk2img/model/checkpoint.py: called by scripts/ship_default_model.sh
+_.release_checkpoint  # spk2img/model/checkpoint.py: called by scripts/ship_model.sh
 
 # module hooks Python itself calls (PEP 562): spk2img/__init__.py loads its public API lazily
 _.__getattr__

@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Ship a training run's best checkpoint as the shipped model NAME (`default`, or another name that
+# `spk2img reconstruct/serve --model NAME` then runs): keep the model it replaces for the bench
+# (spk2img/assets/models/previous/<member>.pt for `default`, previous/<NAME>-<member>.pt for the
+# others; then `spk2img bench --trained previous=...`), strip the optimiser state, export and
+# verify the ONNX graph with its block graphs, write the model card (docs/model_card.md for
+# `default`, else docs/model_card_NAME.md; the README figure too for `default`) and keep the run's
+# resumable state (last.pt + metrics log) in training_state/ so a later session can continue it.
+# Usage: scripts/ship_model.sh NAME runs/RUN [MODEL-CARD OPTIONS, e.g. --data DIR
+#        --real-capture CAPTURE.npz --history "..."]
+set -euo pipefail
+name=${1:?usage: $0 NAME RUN_DIR [MODEL-CARD OPTIONS]}
+run=${2:?usage: $0 NAME RUN_DIR [MODEL-CARD OPTIONS]}
+shift 2
+models=spk2img/assets/models
+model=$models/spk2img-$name
+state=training_state/$(basename "$run")
+if [ "$name" = default ]; then card=docs/model_card.md; kept=""; else card=docs/model_card_$name.md; kept="$name-"; fi
+mkdir -p "$models" "$models/previous" "$state" docs
+if [ -f "$model.pt" ]; then
+  member=$(python -c "from spk2img.model.checkpoint import load_checkpoint as l; print(l('$model.pt')['member'])")
+  cp "$model.pt" "$models/previous/$kept$member.pt"
+fi
+python -c "from spk2img.model.checkpoint import release_checkpoint as r; r('$run/best.pt', '$model.pt')"
+spk2img export "$model.pt" --out "$model.onnx" --name "spk2img-$name" --deform-conv
+spk2img verify "$model.onnx" --json "docs/verify_$name.json" | tee "docs/verify_$name.txt"
+cp "$run/last.pt" "$run/metrics.jsonl" "$state/"
+python -m spk2img.training.model_card --checkpoint "$model.pt" --onnx "$model.onnx" \
+    --run-dir "$state" --out "$card" "$@"
+if [ "$name" = default ]; then python scripts/readme_figure.py; fi
