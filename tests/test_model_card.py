@@ -1,0 +1,25 @@
+"""The model card (spk2img.training.model_card) of a named model: its header, how to run it,
+the sensors it was trained on and the run's figures come from the checkpoint and the log."""
+
+import shutil
+
+from spk2img.training.model_card import render
+from spk2img.training.train import TrainConfig, train
+
+
+def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
+    run = tmp_path / "run"
+    config = dict(member="tiny", patch=16, batch_size=2, val_every=2, val_per_class=1)
+    fast = dict(log_every=1, progress=False, warmup_steps=1, workers=0)
+    train(TrainConfig(steps=2, run_dir=str(run), **config, **fast))
+    onnx = tmp_path / "spk2img-real.onnx"
+    shutil.copy(standin_model, onnx)
+    scores = {"psnr": 30.0, "ssim": 0.9, "psnr_fast": 25.0}
+    results = {"procedural": {"network": scores, "tfp_best": scores, "tfi": scores}}
+    card = render(run / "last.pt", onnx, run, results, history="two steps")
+    assert card.startswith("# Model card: spk2img `real` model")
+    assert "`spk2img reconstruct --model real`" in card and "spk2img-real.encoder.onnx" in card
+    assert "**random noise-free and noisy sensors (procedural scenes)**" in card
+    assert "steps: **2** of 2 planned" in card and "- history: two steps" in card
+    assert "| 2 | 0.00 |" in card  # the validation at step 2, from the run's log
+    assert "| Spk2ImgNet tiny (ONNX) | 30.00 | 0.900 | 25.00 |" in card
