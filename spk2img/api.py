@@ -24,6 +24,7 @@ import numpy as np
 
 from spk2img.core import spikes as _spikes
 from spk2img.core.adaptive import QUALITIES, check_quality
+from spk2img.core.errors import InputError
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, check_method
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
 from spk2img.core.stream import StreamingReconstructor, collect, frame_chunks
@@ -115,7 +116,8 @@ class Reconstructor:
             block encoder and head graphs beside it (``MODEL.encoder.onnx``,
             ``MODEL.head.onnx``) are used when they exist.
         backend: ``"onnx"`` (onnxruntime; the serve extra) or ``"torch"`` (the train extra).
-        checkpoint: the PyTorch checkpoint for ``backend="torch"`` (default: the shipped one).
+        checkpoint: the PyTorch checkpoint for ``backend="torch"`` (default: the ``.pt``
+            shipped beside ``model``, or the shipped default's).
         threads: inference threads (None: the runtime's default).
         device: where onnxruntime runs the network: ``"cpu"``, ``"cuda"``, ``"tensorrt"`` or
             ``"auto"`` (CUDA when it can run here, else the CPU; docs/gpu.md). A GPU device
@@ -289,7 +291,7 @@ def _load_predictor(model, backend: str, checkpoint, threads: int | None, device
         if backend == "torch":
             from spk2img.model.predictor import TorchPredictor
 
-            return TorchPredictor(checkpoint, threads=threads)
+            return TorchPredictor(_torch_checkpoint(model, checkpoint), threads=threads)
         from spk2img.core.onnx_backend import OnnxModel
 
         return OnnxModel(model, threads=threads, device=device)
@@ -300,6 +302,21 @@ def _load_predictor(model, backend: str, checkpoint, threads: int | None, device
             f'"spk2img[{extra}]"',
             name=exc.name,
         ) from exc
+
+
+def _torch_checkpoint(model, checkpoint):
+    """The checkpoint the torch backend runs: ``checkpoint``, else the ``.pt`` shipped beside
+    ``model`` (a shipped model's name or an ONNX file), else the shipped default (None)."""
+    if model is None:
+        return checkpoint
+    if checkpoint is not None:
+        raise InputError("the torch backend runs one checkpoint: give a model or a checkpoint")
+    from spk2img.core.onnx_backend import model_path
+
+    beside = model_path(model).with_suffix(".pt")
+    if not beside.is_file():
+        raise InputError(f"no checkpoint {beside.name} beside model {str(model)!r} for torch")
+    return beside
 
 
 def _load_codec(predict, backend: str, threads: int | None):

@@ -79,3 +79,29 @@ def test_trained_sensors_say_which_streams_a_model_is_for():
     assert trained_sensors({"train_config": natural | {"ideal_share": 1.0}}) == "noise-free"
     assert trained_sensors({"train_config": natural | {"ideal_share": 0}}) == "fitted real camera"
     assert trained_sensors({"train_config": natural}) == "noise-free 50%, fitted real camera 50%"
+
+
+def test_the_torch_backend_runs_the_checkpoint_shipped_beside_the_named_model(
+    models_dir, tiny_checkpoint, tmp_path, capsys
+):
+    """``--model real --backend torch`` runs ``spk2img-real.pt``, never the default's weights;
+    a model with no checkpoint beside it, or a model and a checkpoint at once, is refused."""
+    import torch
+
+    from spk2img.model.checkpoint import load_model
+
+    shutil.copy(tiny_checkpoint, models_dir / "spk2img-real.pt")
+    spikes = (np.random.default_rng(1).uniform(size=(41, 16, 24)) < 0.3).astype(np.uint8)
+    np.save(tmp_path / "s.npy", spikes)
+    out = tmp_path / "out.npz"
+    args = ["reconstruct", str(tmp_path / "s.npy"), "--out", str(out), "--centers", "20"]
+    assert main([*args, "--model", "real", "--backend", "torch", "--no-progress"]) == 0
+    with torch.inference_mode():
+        expected = load_model(tiny_checkpoint)(torch.from_numpy(spikes[None].astype("f4")))[0]
+    np.testing.assert_allclose(np.load(out)["frames"][0], expected[0, 0].numpy(), atol=1e-5)
+    capsys.readouterr()
+    assert main([*args, "--model", "default", "--backend", "torch", "--no-progress"]) == 2
+    assert "no checkpoint spk2img-default.pt beside model 'default'" in capsys.readouterr().err
+    both = ["--model", "real", "--checkpoint", str(tiny_checkpoint), "--backend", "torch"]
+    assert main([*args, *both, "--no-progress"]) == 2
+    assert "give a model or a checkpoint" in capsys.readouterr().err
