@@ -5,7 +5,7 @@
 # others; then `spk2img bench --trained previous=...`), strip the optimiser state, export and
 # verify the ONNX graph with its block graphs, write the model card (docs/model_card.md for
 # `default`, else docs/model_card_NAME.md; the README figure too for `default`) and keep the run's
-# resumable state (last.pt + metrics log) in training_state/ so a later session can continue it.
+# metrics log in training_state/ (its last.pt only by hand, for the one run in progress).
 # Usage: scripts/ship_model.sh NAME runs/RUN [MODEL-CARD OPTIONS, e.g. --data DIR
 #        --real-capture CAPTURE.npz --history "..."]
 set -euo pipefail
@@ -24,7 +24,7 @@ fi
 python -c "from spk2img.model.checkpoint import release_checkpoint as r; r('$run/best.pt', '$model.pt')"
 spk2img export "$model.pt" --out "$model.onnx" --name "spk2img-$name" --deform-conv
 spk2img verify "$model.onnx" --json "docs/verify_$name.json" | tee "docs/verify_$name.txt"
-cp "$run/last.pt" "$run/metrics.jsonl" "$state/"
+cp "$run/metrics.jsonl" "$state/"
 python -m spk2img.training.model_card --checkpoint "$model.pt" --onnx "$model.onnx" \
     --run-dir "$state" --out "$card" "$@"
 if [ "$name" = default ]; then python scripts/readme_figure.py; fi

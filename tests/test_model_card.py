@@ -23,3 +23,7 @@ def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
     assert "steps: **2** of 2 planned" in card and "- history: two steps" in card
     assert "| 2 | 0.00 |" in card  # the validation at step 2, from the run's log
     assert "| Spk2ImgNet tiny (ONNX) | 30.00 | 0.900 | 25.00 |" in card
+    assert f"cp {run}/last.pt runs/run/" in card  # the run's state is there: how to continue
+    (run / "last.pt").unlink()
+    card = render(run / "best.pt", onnx, run, results, history="")
+    assert "resumable state is not kept" in card

@@ -9,7 +9,7 @@ import numpy as np
 from service_support import run_server
 
 from spk2img.cli import main
-from spk2img.core.onnx_backend import OnnxModel, default_model_path
+from spk2img.core.onnx_backend import OnnxModel, default_model_path, graph_metadata, shipped_models
 from spk2img.export.metadata import weights_sha256
 from spk2img.model.checkpoint import load_checkpoint
 from spk2img.model.predictor import DEFAULT_CHECKPOINT
@@ -25,6 +25,20 @@ def test_shipped_onnx_is_the_shipped_checkpoint_and_verifies(tmp_path):
     report = tmp_path / "verify.json"
     assert main(["verify", str(default_model_path()), "--quick", "--json", str(report)]) == 0
     assert json.loads(report.read_text())["passed"]
+
+
+def test_every_shipped_model_is_its_checkpoint_with_its_block_graphs():
+    """Each ``spk2img-<name>.onnx`` (the names ``--model`` takes), its encoder and head graphs
+    and the ``.pt`` beside it hold the same weights, and its card exists."""
+    assert {"default", "real"} <= set(shipped_models())
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    for name, path in shipped_models().items():
+        weights = weights_sha256(load_checkpoint(path.with_suffix(".pt"))["model"])
+        for graph in (path, path.with_suffix(".encoder.onnx"), path.with_suffix(".head.onnx")):
+            assert graph_metadata(graph)["weights_sha256"] == weights, graph
+        assert graph_metadata(path)["name"] == f"spk2img-{name}"
+        card = "model_card.md" if name == "default" else f"model_card_{name}.md"
+        assert f"spk2img/assets/models/spk2img-{name}.onnx" in (docs / card).read_text()
 
 
 def test_readme_command_and_backends_and_service_agree(tmp_path):

@@ -122,7 +122,13 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
         else ""
     )
     init_flag = f" --init {Path(init['path']).name}" if init else ""
-    resume = f"mkdir -p runs/{run_dir.name} && cp {run_dir}/last.pt runs/{run_dir.name}/"
+    resume = (
+        f"- to continue: `mkdir -p runs/{run_dir.name} && cp {run_dir}/last.pt "
+        f"runs/{run_dir.name}/`, then the command above (batches are a function of seed and "
+        "step).\n"
+        if (run_dir / "last.pt").is_file()
+        else "- the run's resumable state is not kept (only its metrics log).\n"
+    )
     data_flags = " ".join(f"--data {Path(d).name}/" for d in tc.get("data", []))
     content = (
         f"{data['sources']['photos']} photographs and {data['sources']['clips']} real clips "
@@ -205,9 +211,7 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
 - command: `spk2img train --member {member} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]} {data_flags}
   --threads {tc["threads"]}{init_flag}`
-{init_line}{history_line}- to continue: `{resume}`, then the command above (batches are a function
-  of seed and step).
-
+{init_line}{history_line}{resume}
 {body}
 ## Validation during training
 | step | hours | procedural PSNR dB | natural PSNR dB |
