@@ -207,6 +207,14 @@ def test_train_from_folders_selects_on_the_natural_validation(tmp_path, data_dir
 
     best = torch.load(run / "best.pt", weights_only=True)
     assert best["val_set"] == "natural" and best["val_psnr"] == val["natural"]["psnr"]
+    noise_free = tmp_path / "noise_free"  # an ideal-only run chooses on the ideal regime
+    ideal = ["--run-dir", str(noise_free), "--data", str(data_dir), "--ideal-share", "1"]
+    assert main([*args, *ideal]) == 0
+    best = torch.load(noise_free / "best.pt", weights_only=True)
+    lines = (noise_free / "metrics.jsonl").read_text().splitlines()
+    (val,) = [r for r in map(json.loads, lines) if r["kind"] == "val"]
+    assert best["val_set"] == "natural ideal"
+    assert best["val_psnr"] == val["natural"]["psnr_ideal"] != val["natural"]["psnr"]
 
 
 def test_train_refuses_cuda_without_a_gpu_and_bad_mixes(tmp_path, capsys):

@@ -142,13 +142,17 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
         + (f"{r['natural']['psnr']:.2f} |" if "natural" in r else "— |")
         for r in vals
     )
+    chosen_on = {
+        "natural ideal": "its ideal-regime PSNR",
+        "natural fitted": "its fitted-regime PSNR",
+    }.get(state.get("val_set", "natural"), "the mean PSNR of both regimes")
     sections = []
     if "natural" in results:
         sections.append(
             "## Natural validation (8 held-out photos, 3 held-out clips, both sensor regimes)\n"
             "The held-out sources (docs/training_data.md), one 96x128 scene per source and motion "
             "class, each filmed by the ideal and by the fitted sensor. The checkpoint was chosen "
-            f"on this set.\n\n{_table(member, results['natural'])}\n\n"
+            f"on this set ({chosen_on}).\n\n{_table(member, results['natural'])}\n\n"
             f"The network is {_gains(results['natural'])}.\n"
         )
     sections.append(

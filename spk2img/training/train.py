@@ -97,6 +97,24 @@ class TrainConfig:
         check_ideal_share(self.ideal_share)
 
 
+def selection_set(ideal_share: float, natural: bool) -> str:
+    """What ``best.pt`` is chosen on: the natural validation in the sensor regime the run films
+    (``natural ideal`` for an ideal share of 1, ``natural fitted`` for 0, ``natural``, both, in
+    between); ``procedural`` without natural data."""
+    if not natural:
+        return "procedural"
+    regime = {1: "ideal", 0: "fitted"}.get(ideal_share)
+    return f"natural {regime}" if regime else "natural"
+
+
+def selection_score(val: dict, selection: str) -> float:
+    """The PSNR (dB) of a validation record ``val`` that :func:`selection_set` names."""
+    if selection == "procedural":
+        return val["psnr"]
+    regime = selection.removeprefix("natural").strip()
+    return val["natural"][f"psnr_{regime}" if regime else "psnr"]
+
+
 def learning_rate(cfg: TrainConfig, step: int) -> float:
     """Learning rate at ``step``: linear warm-up, then a cosine from ``lr`` to ``0.02 * lr``."""
     if step < cfg.warmup_steps:
@@ -171,7 +189,7 @@ def train(cfg: TrainConfig) -> dict:
             real_sensor=dataclasses.asdict(real_sensor),
             natural_validation_scenes=len(val_sets["natural"]),
         )
-    selection = "natural" if val_sets.get("natural") else "procedural"
+    selection = selection_set(cfg.ideal_share, bool(val_sets.get("natural")))
     best = -math.inf
     if run.main and start == 0:
         log.write(kind="baselines", **baseline_scores(val_sets["procedural"]))
@@ -250,7 +268,7 @@ def train(cfg: TrainConfig) -> dict:
                 if val_sets["natural"]:
                     val["natural"] = validate(model, val_sets["natural"])
                 log.write(kind="val", step=done, wall_s=wall, **val)
-                chosen = val["natural"]["psnr"] if selection == "natural" else val["psnr"]
+                chosen = selection_score(val, selection)
                 if chosen > best:
                     best = chosen
                     checkpoint(run_dir / "best.pt", done, val_psnr=best, val_set=selection)
