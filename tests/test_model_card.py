@@ -19,7 +19,7 @@ def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
     card = render(run / "last.pt", onnx, run, results, history="two steps")
     assert card.startswith("# Model card: spk2img `real` model")
     assert "`spk2img reconstruct --model real`" in card and "spk2img-real.encoder.onnx" in card
-    assert "**random noise-free and noisy sensors (procedural scenes)**" in card
+    assert "**random (procedural scenes only)**" in card
     assert "steps: **2** of 2 planned" in card and "- history: two steps" in card
     assert "| 2 | 0.00 |" in card  # the validation at step 2, from the run's log
     assert "| Spk2ImgNet tiny (ONNX) | 30.00 | 0.900 | 25.00 |" in card

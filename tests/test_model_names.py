@@ -74,7 +74,7 @@ def test_models_lists_the_shipped_names(models_dir, capsys):
 
 
 def test_trained_sensors_say_which_streams_a_model_is_for():
-    assert trained_sensors({"train_config": {"data": []}}).startswith("random")
+    assert trained_sensors({"train_config": {"data": []}}) == "random (procedural scenes only)"
     natural = {"data": ["photos"]}
     assert trained_sensors({"train_config": natural | {"ideal_share": 1.0}}) == "noise-free"
     assert trained_sensors({"train_config": natural | {"ideal_share": 0}}) == "fitted real camera"

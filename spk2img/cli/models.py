@@ -60,4 +60,7 @@ def print_shipped_models() -> None:
         meta = graph_metadata(path)
         sensors = meta.get("sensors", "unknown")
         print(f"{name:<14} {meta.get('member', '?'):<7} {sensors:<40} {meta.get('source', '?')}")
-    print("reconstruct and serve take --model NAME; docs/model_card.md says what each is for.")
+    print(
+        "reconstruct and serve take --model NAME; each has a card: docs/model_card.md (default), "
+        "docs/model_card_NAME.md"
+    )

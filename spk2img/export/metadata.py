@@ -73,7 +73,7 @@ def trained_sensors(checkpoint: Mapping) -> str:
     only, :meth:`~spk2img.core.simulator.SensorConfig.random`'s draws."""
     train_config = checkpoint.get("train_config") or {}
     if not train_config.get("data"):
-        return "random noise-free and noisy sensors (procedural scenes)"
+        return "random (procedural scenes only)"
     share = float(train_config.get("ideal_share", 0.5))
     if share == 1:
         return "noise-free"
