@@ -74,12 +74,9 @@ def shipped_models() -> dict[str, Path]:
 
 
 def graph_metadata(path: str | Path) -> dict[str, str]:
-    """The ``metadata_props`` of an ONNX file (spk2img.export.metadata), read by onnxruntime."""
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
-    session = ort.InferenceSession(str(path), options, providers=[PROVIDERS["cpu"]])
+    """The ``metadata_props`` of an ONNX file (spk2img.export.metadata), read by onnxruntime
+    (a one-thread CPU session from :func:`create_session`)."""
+    session = create_session(path, threads=1).session
     return dict(session.get_modelmeta().custom_metadata_map)
 
 

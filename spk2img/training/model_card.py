@@ -27,7 +27,7 @@ from spk2img.core.evaluation import (
     score,
     validation_set,
 )
-from spk2img.core.onnx_backend import OnnxModel
+from spk2img.core.onnx_backend import OnnxModel, graph_metadata
 from spk2img.core.spikes import as_spike_array, read_spikes
 from spk2img.core.windows import NET_WINDOW
 from spk2img.export.metadata import trained_sensors
@@ -105,7 +105,7 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     config = stored_config(state, checkpoint)
     params = count_parameters(Spk2ImgNet(config))
     macs = count_macs(config)
-    graph = OnnxModel(onnx_path, threads=1).metadata.get("graph", "grid_sample")
+    graph = graph_metadata(onnx_path).get("graph", "grid_sample")
     graph = {"deform_conv": "DeformConv", "grid_sample": "GridSample"}.get(graph, graph)
     records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     vals = [r for r in records if r["kind"] == "val"]
