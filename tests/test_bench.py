@@ -7,21 +7,39 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
-from spk2img.bench.cases import SCENE_CLASSES, benchmark_set
+from spk2img.bench.cases import CENTER, SCENE_CLASSES, benchmark_set
+from spk2img.bench.natural import natural_set
 from spk2img.bench.rows import BACKENDS, NetRow, TfiRow, TfpRow, row_from_json, row_to_json
+from spk2img.bench.runner import QUICK
 from spk2img.bench.scores import TFP_WINDOWS, best_tfp_window, quality
 from spk2img.bench.worker import peak_rss_mib
 from spk2img.cli import main
+from spk2img.core.classical import tfp
+from spk2img.core.evaluation import score_images
 
 
 @pytest.fixture(scope="module")
-def quick_run(tmp_path_factory):
+def held_out_dir(tmp_path_factory) -> Path:
+    """A data folder with one of the natural validation's held-out photos (a random texture)
+    and a photo that is not held out."""
+    root = tmp_path_factory.mktemp("data")
+    rng = np.random.default_rng(5)
+    for name in ("kodak24_kodim08.png", "not_held_out.png"):
+        grey = rng.integers(0, 256, (24, 32), dtype=np.uint8).repeat(4, 0).repeat(4, 1)
+        Image.fromarray(grey).save(root / name)
+    return root
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory, held_out_dir):
     out = tmp_path_factory.mktemp("bench")
-    assert main(["bench", "--quick", "--out-dir", str(out)]) == 0
+    assert main(["bench", "--quick", "--out-dir", str(out), "--data", str(held_out_dir)]) == 0
     return out, json.loads((out / "bench.json").read_text()), (out / "bench.md").read_text()
 
 
@@ -64,6 +82,38 @@ def test_quick_run_has_every_row_and_finite_numbers(quick_run):
             assert _finite(level[side]["frames_per_s"], level[side]["p99_ms"])
         assert _finite(level["overhead"])
     assert (out / "images" / "pareto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_quick_natural_validation(quick_run, held_out_dir):
+    """With --data, every scored row is scored on the held-out sources per sensor regime, with
+    the figures of training's scoring of the same images; untrained rows are not."""
+    out, results, text = quick_run
+    natural = results["natural"]
+    assert natural["sources"] == ["kodak24_kodim08.png"]  # the one held-out source only
+    assert natural["count"] == 6 and natural["regimes"] == ["fitted", "ideal"]
+    assert (natural["height"], natural["width"]) == QUICK.natural_size
+    scenes = natural_set([held_out_dir], *QUICK.natural_size).scenes
+    tfp41 = next(r for r in results["rows"] if r["label"].startswith("TFP-41"))
+    expected = score_images([tfp(s.spikes, [CENTER], 41)[0] for s in scenes], scenes)
+    assert tfp41["natural"] == pytest.approx(expected)
+    for row in results["rows"]:
+        if row["error"] is None and row["scored"]:
+            q = row["natural"]
+            assert _finite(q["psnr_ideal"], q["psnr_fitted"], q["ssim_ideal"], q["ssim_fitted"])
+        else:
+            assert "natural" not in row
+    section = text.split("## Natural validation")[1].split("\n## ")[0]
+    assert "kodak24_kodim08.png" in section and "| noise-free: PSNR / SSIM |" in section
+    assert f"| {tfp41['label']} | numpy |" in section and "nan" not in section
+
+
+def test_data_without_held_out_sources_exits_2(tmp_path, capsys):
+    data, out = tmp_path / "data", tmp_path / "out"
+    data.mkdir()
+    assert main(["bench", "--quick", "--out-dir", str(out), "--data", str(data)]) == 2
+    assert "none of the held-out sources" in capsys.readouterr().err
+    assert not (out / "bench.json").exists()
 
 
 @pytest.mark.slow
@@ -148,7 +198,13 @@ def test_worker_peak_rss_is_its_own():
 
 @pytest.mark.parametrize(
     "flags",
-    [["--threads", "0"], ["--members", "huge"], ["--trained", "nothing"], ["--repeats", "0"]],
+    [
+        ["--threads", "0"],
+        ["--members", "huge"],
+        ["--trained", "nothing"],
+        ["--repeats", "0"],
+        ["--data", "no/such/folder"],
+    ],
 )
 def test_bad_options_exit_2(tmp_path, flags, capsys):
     assert main(["bench", "--quick", "--out-dir", str(tmp_path), *flags]) == 2

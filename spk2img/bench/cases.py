@@ -47,10 +47,16 @@ class BenchSet:
         return len(self.classes)
 
     def save_spikes(self, directory: Path) -> Path:
-        """Write ``spikes.npy`` into ``directory``, for workers to memory-map; the directory."""
-        directory.mkdir(parents=True, exist_ok=True)
-        np.save(directory / "spikes.npy", self.spikes)
-        return directory
+        """Write the windows into ``directory`` for workers (:func:`save_spikes`)."""
+        return save_spikes(self.spikes, directory)
+
+
+def save_spikes(spikes: np.ndarray, directory: Path) -> Path:
+    """Write ``spikes (N, 41, H, W) uint8`` to ``directory/spikes.npy``, for workers to
+    memory-map (:func:`load_spikes`); the directory."""
+    directory.mkdir(parents=True, exist_ok=True)
+    np.save(directory / "spikes.npy", spikes)
+    return directory
 
 
 def load_spikes(directory: Path) -> np.ndarray:

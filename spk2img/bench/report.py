@@ -8,7 +8,10 @@ could not run). A row has ``label``, ``kind``, ``backend``, ``weights``,
 ``scored``, ``error`` (``None`` or why it failed), ``params``, ``macs`` (``{"reference",
 "timed"}`` or ``None`` for classical methods); once measured ``ms_per_frame``, ``seconds``,
 ``load_s`` (by thread count) and ``peak_rss_mib``; ``quality`` (``psnr``, ``ssim``,
-``classes``) when scored and ``max_abs_error`` for networks.
+``classes``) when scored and ``max_abs_error`` for networks. With ``--data``, ``natural``
+describes the natural validation (:meth:`~spk2img.bench.natural.NaturalSet.describe`) and each
+scored row has ``natural`` (:func:`~spk2img.core.evaluation.score_images`: ``psnr_ideal``,
+``psnr_fitted``, ``ssim_ideal``, ``ssim_fitted`` …); without it ``natural`` is ``None``.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ def markdown(results: dict) -> str:
         header(results),
         speed_table(results),
         class_table(results),
+        natural_table(results),
         efficiency_table(results),
         service_table(results),
         gpu_table(results),
@@ -134,6 +138,49 @@ def class_table(results: dict) -> str:
             q = row["quality"]["classes"]
             cells = [f"{q[n]['psnr']:.2f} / {q[n]['ssim']:.3f}" for n in names]
             lines.append(table_row([row["label"], row["backend"], *cells]))
+    return "\n".join(lines) + "\n"
+
+
+REGIME_NAMES = {"ideal": "noise-free", "fitted": "fitted real sensor"}
+"""Natural validation regime -> its name in the tables and the plot."""
+
+
+def natural_table(results: dict) -> str:
+    """PSNR / SSIM of each scored row on the natural validation, per sensor regime."""
+    natural = results.get("natural")
+    lines = ["## Natural validation: held-out photographs and clips", ""]
+    if natural is None:
+        return "\n".join([*lines, "Not measured (no `--data`).", ""])
+    regimes = natural["regimes"]
+    t = max(results["settings"]["threads"])
+    base = natural["baselines"]
+    oracle = ", ".join(f"{base['tfp_best'][f'psnr_{r}']:.2f} dB {REGIME_NAMES[r]}" for r in regimes)
+    lines += [
+        f"{natural['count']} windows of {natural['height']}x{natural['width']} made of the "
+        f"{len(natural['sources'])} sources training never sees ({', '.join(natural['sources'])}),"
+        f" each filmed by the {' and the '.join(REGIME_NAMES[r] for r in regimes)} "
+        "(docs/natural_scenes.md): the set, seeds and size of training's natural validation, so "
+        "the figures equal the model cards'. TFP with the best window per scene (an oracle no "
+        f"real method has) scores {oracle}.",
+        "",
+        *table_head(
+            [
+                "method",
+                "backend",
+                "G MACs/frame",
+                f"ms/frame ({t} thr)",
+                *(f"{REGIME_NAMES[r]}: PSNR / SSIM" for r in regimes),
+                "both: PSNR",
+            ]
+        ),
+    ]
+    for row in results["rows"]:
+        if "natural" not in row:
+            continue
+        q = row["natural"]
+        cells = [f"{q[f'psnr_{r}']:.2f} / {q[f'ssim_{r}']:.3f}" for r in regimes]
+        speed = [gmacs(row, "reference"), number(row["ms_per_frame"][str(t)])]
+        lines.append(table_row([row["label"], row["backend"], *speed, *cells, f"{q['psnr']:.2f}"]))
     return "\n".join(lines) + "\n"
 
 
@@ -257,30 +304,55 @@ def gpu_table(results: dict) -> str:
 
 
 def pareto_plot(results: dict, path: Path) -> None:
-    """PSNR against ms/frame (log x, the most threads) of every scored row: classical methods
-    labelled in place, networks by a legend (colour: weights, marker: backend); the Pareto
-    front (no other row both faster and better) as a step line."""
+    """PSNR against ms/frame (log x, the most threads) of every scored row: on the benchmark
+    set and, with the natural validation, on it in each sensor regime (one panel each).
+    Classical methods are labelled in place, networks by a legend (colour: weights, marker:
+    backend); the Pareto front (no other row both faster and better) is a step line."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    panels = [("PSNR (dB) on the benchmark set", "quality", "psnr")]
+    natural = results.get("natural")
+    panels += [
+        (f"PSNR (dB), natural validation, {REGIME_NAMES[r]}", "natural", f"psnr_{r}")
+        for r in (natural["regimes"] if natural else ())
+    ]
+    fig, axes = plt.subplots(
+        1, len(panels), figsize=(5 * len(panels) + 4, 5), dpi=120, squeeze=False
+    )
+    colours: dict[str, str] = {}
+    for ax, panel in zip(axes[0], panels, strict=True):
+        pareto_panel(ax, results, *panel, colours)
+    axes[0][0].set_title("Speed against error (trained models and classical methods)", loc="left")
+    if axes[0][-1].get_legend_handles_labels()[0]:
+        axes[0][-1].legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def pareto_panel(
+    ax, results: dict, ylabel: str, section: str, field: str, colours: dict[str, str]
+) -> None:
+    """One panel of :func:`pareto_plot`: ``row[section][field]`` (dB) of every row that has the
+    section, against its ms/frame; ``colours`` (weights -> colour) is shared across panels."""
     t = str(max(results["settings"]["threads"]))
-    scored = [row for row in results["rows"] if "quality" in row]
-    points = sorted((row["ms_per_frame"][t], row["quality"]["psnr"]) for row in scored)
+    scored = [row for row in results["rows"] if section in row]
+    points = sorted((row["ms_per_frame"][t], row[section][field]) for row in scored)
     front, best = [], -math.inf
     for ms, db in points:
         if db > best:
             front.append((ms, db))
             best = db
-    fig, ax = plt.subplots(figsize=(9, 5), dpi=120)
     if len(front) > 1:
         ax.step(
             *zip(*front, strict=True), where="post", color="0.6", zorder=1, label="Pareto front"
         )
-    colours = {}
     for row in scored:
-        x, y = row["ms_per_frame"][t], row["quality"]["psnr"]
+        x, y = row["ms_per_frame"][t], row[section][field]
         if row["kind"] != "net":
             ax.scatter(x, y, color="black", marker="x", zorder=3)
             ax.annotate(row["label"], (x, y), textcoords="offset points", xytext=(5, 5), fontsize=8)
@@ -297,16 +369,9 @@ def pareto_plot(results: dict, path: Path) -> None:
     s = results["settings"]
     ax.set_xscale("log")
     ax.set_xlabel(f"ms per {s['height']}x{s['width']} frame ({t} thread(s), log scale)")
-    ax.set_ylabel("PSNR (dB) on the benchmark set")
-    ax.set_title("Speed against error (trained models and classical methods)")
+    ax.set_ylabel(ylabel)
     ax.grid(True, which="both", alpha=0.3)
     ax.margins(0.2)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
 
 
 def achieved_gflops(row: dict, threads: int) -> float:

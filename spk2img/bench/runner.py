@@ -14,8 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from spk2img.core.evaluation import score_images
+
 from . import artifacts, gpu
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
+from .natural import NATURAL_SIZE, NaturalSet, natural_set
 from .rows import NetRow, Row, TfiRow, TfpRow, row_to_json
 from .scores import best_tfp_window, max_abs_error, quality
 from .service_load import service_benchmark
@@ -47,6 +50,8 @@ class Scale:
     """Requests per number of concurrent clients in the service load test."""
     stream_frames: int
     """Frames of the stream of the streaming benchmark."""
+    natural_size: tuple[int, int] = NATURAL_SIZE
+    """Frame size (height, width) of the natural validation (with ``--data``)."""
 
 
 FULL = Scale(
@@ -58,7 +63,14 @@ FULL = Scale(
     stream_frames=1000,
 )
 QUICK = Scale(
-    64, 96, per_class=2, repeats=3, members=("tiny",), service_requests=8, stream_frames=90
+    64,
+    96,
+    per_class=2,
+    repeats=3,
+    members=("tiny",),
+    service_requests=8,
+    stream_frames=90,
+    natural_size=(32, 48),
 )
 
 
@@ -77,6 +89,9 @@ class BenchOptions:
     """Whether to run the streaming benchmark (block reuse)."""
     command: str = "spk2img bench"
     """The command line that reproduces this run (for the report)."""
+    natural_data: tuple[Path, ...] = ()
+    """Folders holding the natural validation's held-out sources (:mod:`.natural`); none: the
+    rows are scored on the simulated benchmark set only."""
     device: str = "auto"
     """Where the GPU rows run (:mod:`spk2img.bench.gpu`): ``auto`` (CUDA where it starts,
     else they are reported as not yet measured), ``cuda``, ``tensorrt`` or ``cpu`` (skipped)."""
@@ -107,24 +122,32 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         )
         cases = benchmark_set(scale.per_class, scale.height, scale.width)
         cases_dir = cases.save_spikes(work / "cases")
+        natural = natural_run(options, log)
+        natural_dir = natural.save_spikes(work / "natural") if natural else None
         plan = plan_rows(options, cases, work, log)
         log("measuring the fp32 matmul rate")
         matmul = run_job(
             {"job": "matmul", "threads": list(options.threads), "repeats": scale.repeats}
         )["gflops"]
-        entries, images = [], {}
+        entries, images, natural_images = [], {}, {}
         for i, item in enumerate(plan.items):
             if isinstance(item, dict):
                 entries.append(item)
                 continue
-            entries.append(measure(item, options, cases_dir, work / f"row{i}.npy"))
+            outputs = work / f"row{i}.npy", work / f"row{i}-natural.npy"
+            entries.append(measure(item, options, cases_dir, outputs, natural_dir))
             if entries[-1]["error"] is None:
-                images[i] = np.load(work / f"row{i}.npy")
+                images[i] = np.load(outputs[0])
+                if outputs[1].is_file():
+                    natural_images[i] = np.load(outputs[1])
             log(
                 f"[{i + 1}/{len(plan.items)}] {item.label}, {item.backend}: "
                 f"{progress_text(entries[-1])}"
             )
         score(entries, plan.items, images, cases)
+        if natural is not None:
+            for i, row_images in natural_images.items():
+                entries[i]["natural"] = score_images(row_images, natural.scenes)
         sizes = {"reference": REFERENCE_SIZE, "timed": (scale.height, scale.width)}
         costs = {w.name: artifacts.cost(w, sizes) for w in plan.weights}
         for entry in entries:
@@ -153,6 +176,7 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
             "per_class": scale.per_class,
             "sensors": sorted(set(cases.sensors)),
         },
+        "natural": natural.describe() if natural else None,
         "networks": [w.describe() for w in plan.weights],
         "shipped_installed": any(w.name == "shipped" for w in plan.weights),
         "matmul_gflops": matmul,
@@ -162,6 +186,19 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         "tiers": tiers,
         "gpu": on_gpu,
     }
+
+
+def natural_run(options: BenchOptions, log: Log) -> NaturalSet | None:
+    """The natural validation of ``options.natural_data`` (``None`` without)."""
+    if not options.natural_data:
+        return None
+    height, width = options.scale.natural_size
+    natural = natural_set(list(options.natural_data), height, width)
+    log(
+        f"natural validation: {len(natural.scenes)} windows of {height}x{width} from "
+        f"{len(natural.sources)} held-out sources"
+    )
+    return natural
 
 
 def run_gpu_only(options: BenchOptions, log: Log) -> dict:
@@ -302,9 +339,17 @@ def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> P
     return Plan(items, weights)
 
 
-def measure(row: Row, options: BenchOptions, cases_dir: Path, images: Path) -> dict:
-    """Run ``row`` in a worker that saves its images to ``images``: the row's entry with its
-    timings and peak RSS, or its ``error``."""
+def measure(
+    row: Row,
+    options: BenchOptions,
+    cases_dir: Path,
+    outputs: tuple[Path, Path],
+    natural_dir: Path | None,
+) -> dict:
+    """Run ``row`` in a worker that saves its images of the benchmark set to ``outputs[0]`` and,
+    when it is scored and ``natural_dir`` holds the natural validation, those of the natural
+    validation to ``outputs[1]``: the row's entry with its timings and peak RSS, or its
+    ``error``."""
     scored = not isinstance(row, NetRow) or row.trained
     spec = {
         "job": "row",
@@ -314,8 +359,10 @@ def measure(row: Row, options: BenchOptions, cases_dir: Path, images: Path) -> d
         "warmup": 1,
         "cases": str(cases_dir),
         "score": scored,
-        "outputs": str(images),
+        "outputs": str(outputs[0]),
     }
+    if scored and natural_dir is not None:
+        spec |= {"natural": str(natural_dir), "natural_outputs": str(outputs[1])}
     entry = {
         "label": row.label,
         "kind": row.kind,

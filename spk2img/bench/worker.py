@@ -6,7 +6,8 @@
   "score": false, "outputs": PATH}``: build the row (:func:`~spk2img.bench.rows.row_from_json`)
   at each thread count, time it on the first window of the benchmark set in ``DIR``, note the
   peak RSS, then save to ``PATH`` (``.npy``) its images of every window (``score``) or of the
-  timed window only: ``(N, H, W) float32``.
+  timed window only: ``(N, H, W) float32``. With ``"natural": DIR2, "natural_outputs": PATH2``
+  also its images of every window saved in ``DIR2`` (the natural validation), to ``PATH2``.
 - ``{"job": "matmul", "threads": [1, 2], "repeats": 5}``: the fp32 matmul GFLOP/s.
 - ``{"job": "stream", "model": ONNX, "mode": "whole"|"reuse", "threads": [1], "spikes": NPY,
   "stride": 7, "outputs": PATH}``: stream the ``(T, H, W)`` spikes through the network at every
@@ -79,6 +80,10 @@ def measure_row(spec: dict) -> dict:
     else:
         images = image[None].astype(np.float32)
     np.save(spec["outputs"], images)
+    if spec.get("natural"):
+        windows = load_spikes(Path(spec["natural"]))
+        natural = np.stack([reconstruct(np.array(w)) for w in windows]).astype(np.float32)
+        np.save(spec["natural_outputs"], natural)
     return result
 
 

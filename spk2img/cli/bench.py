@@ -52,7 +52,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 3)")
     p.add_argument(
         "--members",
-        help="family members with random weights (default paper,small,lite,tiny; --quick: tiny)",
+        help="family members with random weights (default paper,small,lite,tiny; --quick: tiny; "
+        "'' for none)",
     )
     p.add_argument(
         "--trained",
@@ -60,6 +61,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=[],
         metavar="NAME=CHECKPOINT",
         help="also benchmark and score a trained checkpoint (repeatable)",
+    )
+    p.add_argument(
+        "--data",
+        action="append",
+        default=[],
+        type=Path,
+        metavar="DIR",
+        help="also score every scored row on the natural validation: training's held-out photos "
+        "and clips found under DIR (e.g. the training data folder; only the held-out sources "
+        "are read), per sensor regime, at training's validation size (repeatable)",
     )
     p.add_argument("--skip-service", action="store_true", help="skip the HTTP load test")
     p.add_argument(
@@ -164,13 +175,18 @@ def bench_options(args: argparse.Namespace):
     repeats = scale.repeats if args.repeats is None else args.repeats
     if repeats < 1:
         raise InputError(f"--repeats must be >= 1, got {repeats}")
-    members = scale.members if args.members is None else tuple(args.members.split(","))
+    members = (
+        scale.members if args.members is None else tuple(filter(None, args.members.split(",")))
+    )
     unknown = [m for m in members if m not in MEMBERS]
     if unknown:
         raise InputError(
             f"unknown member(s) {', '.join(unknown)}: choose from {', '.join(MEMBERS)}"
         )
     trained = tuple(_named_checkpoint(text) for text in args.trained)
+    for folder in args.data:
+        if not folder.is_dir():
+            raise InputError(f"--data: no such folder {folder}")
     names = [*members, "shipped", *(name for name, _ in trained)]
     if len(set(names)) < len(names):
         raise InputError("--trained names must be unique and differ from the members and 'shipped'")
@@ -192,8 +208,9 @@ def bench_options(args: argparse.Namespace):
     else:
         command += [
             f"--repeats {repeats}",
-            f"--members {','.join(members)}",
+            f"--members {','.join(members) or repr('')}",
             *(f"--trained {n}={p}" for n, p in trained),
+            *(f"--data {folder}" for folder in args.data),
             "--skip-service" if args.skip_service else "",
             "--skip-streaming" if args.skip_streaming else "",
             "" if args.device == "auto" else f"--device {args.device}",
@@ -202,6 +219,7 @@ def bench_options(args: argparse.Namespace):
         replace(scale, repeats=repeats, members=members),
         threads,
         trained,
+        natural_data=tuple(args.data),
         service=not args.skip_service and not args.streaming_only,
         streaming=not args.skip_streaming,
         command=" ".join(part for part in command if part),

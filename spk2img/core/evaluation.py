@@ -6,7 +6,7 @@ scores measure scenes the network never trained on.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from itertools import product
 
@@ -71,11 +71,18 @@ def tfi_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
 def score(
     method: Callable[[np.ndarray, np.ndarray], np.ndarray], scenes: list[ValidationScene]
 ) -> dict:
-    """Mean PSNR (dB) and SSIM over all scenes; mean PSNR per motion, brightness and sensor."""
-    rows = []
-    for scene in scenes:
-        image = method(scene.spikes, scene.truth)
-        rows.append((scene, psnr(image, scene.truth), ssim(image, scene.truth)))
+    """:func:`score_images` of ``method``'s image of each scene."""
+    return score_images([method(scene.spikes, scene.truth) for scene in scenes], scenes)
+
+
+def score_images(images: Sequence[np.ndarray], scenes: list[ValidationScene]) -> dict:
+    """Mean PSNR (dB) and SSIM of ``images`` (one ``(H, W)`` image per scene, in order) against
+    the scenes' truth: over all scenes (``psnr``, ``ssim``); ``psnr_<class>`` per motion,
+    brightness and sensor; ``ssim_<sensor>`` per sensor."""
+    rows = [
+        (scene, psnr(image, scene.truth), ssim(image, scene.truth))
+        for image, scene in zip(images, scenes, strict=True)
+    ]
     out = {
         "psnr": float(np.mean([r[1] for r in rows])),
         "ssim": float(np.mean([r[2] for r in rows])),
@@ -85,6 +92,8 @@ def score(
             sel = [r for r in rows if getattr(r[0], attr) == name]
             if sel:
                 out[f"psnr_{name}"] = float(np.mean([r[1] for r in sel]))
+                if attr == "sensor":
+                    out[f"ssim_{name}"] = float(np.mean([r[2] for r in sel]))
     return out
 
 
