@@ -91,7 +91,7 @@ def test_quick_natural_validation(quick_run, held_out_dir):
     out, results, text = quick_run
     natural = results["natural"]
     assert natural["sources"] == ["kodak24_kodim08.png"]  # the one held-out source only
-    assert natural["count"] == 6 and natural["regimes"] == ["fitted", "ideal"]
+    assert natural["count"] == 6 and natural["regimes"] == ["ideal", "fitted"]
     assert (natural["height"], natural["width"]) == QUICK.natural_size
     scenes = natural_set([held_out_dir], *QUICK.natural_size).scenes
     tfp41 = next(r for r in results["rows"] if r["label"].startswith("TFP-41"))

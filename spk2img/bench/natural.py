@@ -47,7 +47,7 @@ class NaturalSet:
             "height": height,
             "width": width,
             "sources": self.sources,
-            "regimes": sorted({scene.sensor for scene in self.scenes}),
+            "regimes": list(dict.fromkeys(scene.sensor for scene in self.scenes)),
             "baselines": baseline_scores(self.scenes),
         }
 
