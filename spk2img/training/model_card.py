@@ -36,6 +36,7 @@ from spk2img.model.complexity import count_macs, count_parameters
 from spk2img.model.network import Spk2ImgNet
 
 from .natural_validation import natural_validation_set
+from .train import selection_words
 
 CLASSES = [f"psnr_{c}" for c in (*SENSORS, *MOTIONS, *BRIGHTNESS)]
 REAL_CAPTURE_STEP = 20  # frames between the scored centres of the real capture
@@ -142,10 +143,7 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
         + (f"{r['natural']['psnr']:.2f} |" if "natural" in r else "— |")
         for r in vals
     )
-    chosen_on = {
-        "natural ideal": "its ideal-regime PSNR",
-        "natural fitted": "its fitted-regime PSNR",
-    }.get(state.get("val_set", "natural"), "the mean PSNR of both regimes")
+    chosen_on = selection_words(state.get("val_set", "natural"))
     sections = []
     if "natural" in results:
         sections.append(

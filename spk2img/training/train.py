@@ -115,6 +115,14 @@ def selection_score(val: dict, selection: str) -> float:
     return val["natural"][f"psnr_{regime}" if regime else "psnr"]
 
 
+def selection_words(selection: str) -> str:
+    """The score :func:`selection_set` names, in words (for the model card)."""
+    if selection == "procedural":
+        return "the procedural validation's PSNR"
+    regime = selection.removeprefix("natural").strip()
+    return f"its {regime}-regime PSNR" if regime else "the mean PSNR of both regimes"
+
+
 def learning_rate(cfg: TrainConfig, step: int) -> float:
     """Learning rate at ``step``: linear warm-up, then a cosine from ``lr`` to ``0.02 * lr``."""
     if step < cfg.warmup_steps:
