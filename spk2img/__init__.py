@@ -21,11 +21,19 @@ __all__ = [
     "__version__",
     "read_spikes",
     "reconstruct",
+    "suggest_binning",
     "write_spikes",
 ]
 
 if TYPE_CHECKING:
-    from spk2img.api import Reconstruction, Reconstructor, read_spikes, reconstruct, write_spikes
+    from spk2img.api import (
+        Reconstruction,
+        Reconstructor,
+        read_spikes,
+        reconstruct,
+        suggest_binning,
+        write_spikes,
+    )
 
 
 def __getattr__(name: str) -> Any:

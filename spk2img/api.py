@@ -8,7 +8,8 @@ Everything here is re-exported by :mod:`spk2img` (``spk2img.reconstruct``, …) 
 - Reconstructed frames are ``(N, H, W) float32`` *linear* intensity in [0, 1] (a pixel of
   intensity ``I`` fires ``0.6 * I`` spikes a frame on average); PNGs apply display gamma.
 - A centre is a frame index ``k`` of the stream; the frame reconstructed at ``k`` uses the
-  window of frames ``k - window//2 .. k + window//2`` (41 frames for the network).
+  window of frames ``k - window//2 .. k + window//2`` (41 frames for the network, or 41 x
+  ``binning`` on a dim stream).
 
 Importing this module imports numpy only; onnxruntime or torch load when a
 :class:`Reconstructor` for ``method="net"`` is built.
@@ -24,11 +25,18 @@ import numpy as np
 
 from spk2img.core import spikes as _spikes
 from spk2img.core.adaptive import QUALITIES, check_quality
+from spk2img.core.binning import suggest_binning
 from spk2img.core.errors import InputError
-from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS, build_reconstructor, check_method
+from spk2img.core.methods import (
+    DEFAULT_TFP_WINDOW,
+    METHODS,
+    build_reconstructor,
+    check_method,
+    method_window,
+)
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
 from spk2img.core.stream import StreamingReconstructor, collect, frame_chunks
-from spk2img.core.windows import NET_WINDOW, CenterPlan, parse_centers
+from spk2img.core.windows import CenterPlan, parse_centers
 
 __all__ = [
     "DEFAULT_STRIDE",
@@ -39,6 +47,7 @@ __all__ = [
     "Spikes",
     "reconstruct",
     "read_spikes",
+    "suggest_binning",
     "write_spikes",
 ]
 
@@ -126,6 +135,11 @@ class Reconstructor:
             batch axis is dynamic; more than 1 pays on a GPU).
         block_reuse: encode each 13-frame block once when the centres share blocks (a stride
             that is a multiple of 7); the frames equal those of whole windows to float rounding.
+        binning: for ``"net"`` with quality ``"best"``, on dim streams: merge this many
+            consecutive frames into each of the network's 41 (a spike where any fired), so a
+            window spans ``41 * binning`` frames (plus one when even) and a dim pixel fires as
+            often per network frame as a bright one; trades time resolution for noise. 1 (the
+            default) merges none; :func:`suggest_binning` picks one from a stream's firing rate.
     """
 
     def __init__(
@@ -141,9 +155,13 @@ class Reconstructor:
         block_reuse: bool = True,
         device: str = "cpu",
         batch: int = 1,
+        binning: int = 1,
     ):
         self.method, self.quality = check_method(method), check_quality(quality)
-        self.window = NET_WINDOW if method == "net" else window
+        self.window = method_window(method, window, binning)
+        if binning != 1 and quality != "best":
+            raise InputError(f"binning is for quality best, not {quality}")
+        self.binning = binning
         if backend not in ("onnx", "torch"):
             raise ValueError(f"unknown backend {backend!r}: choose onnx or torch")
         if backend == "torch" and device != "cpu":
@@ -193,6 +211,7 @@ class Reconstructor:
             self.batch,
             codec=self.codec,
             quality=self.quality,
+            binning=self.binning,
         )
         self.last_stream = stream
         return _run(stream, spikes, progress)
@@ -241,6 +260,7 @@ def reconstruct(
     model: str | Path | None = None,
     backend: str = "onnx",
     threads: int | None = None,
+    binning: int = 1,
 ) -> Reconstruction:
     """Reconstruct frames of one spike stream in one call.
 
@@ -252,7 +272,13 @@ def reconstruct(
     :class:`Reconstructor` once to reconstruct many streams with one loaded model.
     """
     recon = Reconstructor(
-        method, quality=quality, window=window, model=model, backend=backend, threads=threads
+        method,
+        quality=quality,
+        window=window,
+        model=model,
+        backend=backend,
+        threads=threads,
+        binning=binning,
     )
     return recon.reconstruct(spikes, centers=centers, stride=stride)
 

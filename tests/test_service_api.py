@@ -35,11 +35,12 @@ def local(
     model,
     window: int = 41,
     quality: str = "best",
+    binning: int = 1,
 ):
     """The same reconstruction with spk2img.core, in-process."""
-    plan = method_plan(method, centers, stride, window)
+    plan = method_plan(method, centers, stride, window, binning)
     predict = model if method == "net" else None
-    recon = build_reconstructor(method, H, W, plan, predict, quality=quality)
+    recon = build_reconstructor(method, H, W, plan, predict, quality=quality, binning=binning)
     return collect(run_stream(recon, frame_chunks(SPIKES, 7)), H, W)
 
 
@@ -91,6 +92,20 @@ def test_results_equal_local(service, model, method, centers, stride, window, qu
         np.testing.assert_array_equal(frame.image, image)
 
 
+@pytest.mark.parametrize(("binning", "centers"), [(2, "41,50,58"), (1, "20,79")])
+def test_binning_merges_frames_like_local(service, model, binning, centers):
+    query = f"height={H}&width={W}&method=net&centers={centers}&binning={binning}"
+    frames, _ = parse_frames(post(service, query).content)
+    expected, expected_centers = local("net", centers, None, model, binning=binning)
+    assert [f.center for f in frames] == expected_centers.tolist()
+    for frame, image in zip(frames, expected, strict=True):
+        half = 41 * binning // 2
+        merged = SPIKES[frame.center - half : frame.center + half + 1][: 41 * binning]
+        merged = merged.reshape(41, binning, H, W).max(axis=1)
+        np.testing.assert_allclose(frame.image, tfp_reference(merged, 20, 41) / binning, atol=1e-6)
+        np.testing.assert_array_equal(frame.image, image)
+
+
 def test_net_with_the_standin_model_is_tfp41(service):
     frames, _ = parse_frames(
         post(service, f"height={H}&width={W}&centers=20,60&method=net").content
@@ -120,6 +135,11 @@ BAD_REQUESTS = [
     (f"height={H}&width={W}&centers=20&method=tfp&window=4", OCTET, BODY, 422, "odd"),
     (f"height={H}&width={W}&centers=60&method=tfp&window=103", OCTET, BODY, 422, "limit of 101"),
     (f"height={H}&width={W}&centers=2a,3", OCTET, BODY, 422, "centers"),
+    (f"height={H}&width={W}&centers=45&binning=2&method=tfp", OCTET, BODY, 422, "method net"),
+    (f"height={H}&width={W}&centers=45&binning=2&quality=fast", OCTET, BODY, 422, "quality best"),
+    (f"height={H}&width={W}&centers=45&binning=3", OCTET, BODY, 422, "window 123 is over"),
+    (f"height={H}&width={W}&centers=45&binning=0", OCTET, BODY, 422, "binning"),
+    (f"height={H}&width={W}&centers=30&binning=2", OCTET, BODY, 422, "first valid centre is 41"),
     (f"height={H}&width={W}&centers=20&colour=red", OCTET, BODY, 422, "colour"),
     (f"height=0&width={W}&centers=20", OCTET, BODY, 422, "height"),
     ("height=400&width=400&centers=20", OCTET, BODY, 422, "100000 pixels"),

@@ -10,12 +10,14 @@ import numpy as np
 from spk2img import api
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.core.adaptive import QUALITIES, BalancedStream
+from spk2img.core.binning import firing_rates
 from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.errors import InputError
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
 from spk2img.core.onnx_backend import DEVICES
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
-from spk2img.core.stream import collect
+from spk2img.core.stream import NetStream, collect
+from spk2img.core.windows import MAX_BINNING, check_binning
 
 DEFAULT_STRIDE = api.DEFAULT_STRIDE
 
@@ -46,6 +48,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default="best",
         help="for --method net: best (the network everywhere, default), balanced (the network "
         "only on tiles that move or are dim, TFP elsewhere) or fast (TFP over the 41 frames)",
+    )
+    p.add_argument(
+        "--binning",
+        type=parse_binning,
+        default=1,
+        metavar="K|auto",
+        help="for dim streams (--method net, --quality best): merge K consecutive frames into "
+        "each of the network's 41, so a window spans 41 x K frames; auto picks K from the "
+        "stream's firing rate (default 1: none; docs/binning.md)",
     )
     p.add_argument(
         "--model",
@@ -91,12 +102,17 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--batch must be >= 1, got {args.batch}")
     if args.device not in (None, "cpu") and (args.backend != "onnx" or args.method != "net"):
         raise InputError(f"--device {args.device} is for --method net with --backend onnx")
+    if args.binning != 1 and (args.method != "net" or args.quality != "best"):
+        raise InputError("--binning is for --method net with --quality best")
+    spikes = api.read_spikes(args.input, args.height, args.width)
+    if args.method == "net" and args.quality == "best":
+        args.binning = _choose_binning(args, spikes)
     how = ""
     if args.url:
         args.no_progress = not show_progress(args)  # the client's bar follows the same rule
         frames, centers = _reconstruct_remote(args, stride)
     else:
-        frames, centers, how = _reconstruct_local(args, stride)
+        frames, centers, how = _reconstruct_local(args, spikes, stride)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(args.out, frames=frames, centers=centers)
     if args.png_dir:
@@ -108,10 +124,9 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _reconstruct_local(args: argparse.Namespace, stride: int | None):
+def _reconstruct_local(args: argparse.Namespace, spikes: api.Spikes, stride: int | None):
     """Through the public API (:class:`spk2img.Reconstructor`), with a bar over the stream's
     frames that advances as each frame is read and each centre is done."""
-    spikes = api.read_spikes(args.input, args.height, args.width)
     recon = api.Reconstructor(
         args.method,
         quality=args.quality,
@@ -123,6 +138,7 @@ def _reconstruct_local(args: argparse.Namespace, stride: int | None):
         block_reuse=not args.no_block_reuse,
         device=args.device or "cpu",
         batch=args.batch,
+        binning=args.binning,
     )
     note = getattr(recon.predict, "device_note", "")
     if note:
@@ -142,6 +158,34 @@ def _reconstruct_local(args: argparse.Namespace, stride: int | None):
     return frames, centers, compute_note(recon.last_stream) + device_note(recon.predict)
 
 
+def parse_binning(text: str) -> int | str:
+    """``--binning``: ``auto`` or an integer from 1 to :data:`MAX_BINNING`."""
+    if text == "auto":
+        return text
+    try:
+        return check_binning(int(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(
+            f"expected auto or an integer from 1 to {MAX_BINNING}, got {text!r}"
+        ) from exc
+
+
+def _choose_binning(args: argparse.Namespace, spikes: api.Spikes) -> int:
+    """``--binning``, with ``auto`` resolved from the stream's firing rate; without the flag on
+    a dim stream, a note that names the binning it would take."""
+    suggested = api.suggest_binning(spikes)
+    if args.binning == "auto":
+        say(args, f"binning {suggested} ({firing_rates(spikes).mean():.3f} spikes/pixel/frame)")
+        return suggested
+    if args.binning == 1 and suggested > 1:
+        say(
+            args,
+            f"note: a dim stream ({firing_rates(spikes).mean():.3f} spikes/pixel/frame): "
+            f"--binning {suggested} (or auto) gives the network {suggested} frames per frame",
+        )
+    return args.binning
+
+
 def device_note(predict) -> str:
     """Where the network ran, for the closing message, when it was not the CPU."""
     provider = getattr(predict, "provider", "CPUExecutionProvider")
@@ -152,6 +196,8 @@ def compute_note(recon) -> str:
     """What the network's work came to, for the closing message ('' for whole windows)."""
     if isinstance(recon, BlockReuseStream):
         return f" (each 13-frame block encoded once: {recon.blocks_encoded} blocks)"
+    if isinstance(recon, NetStream) and recon.binning > 1:
+        return f" (binning {recon.binning}: {recon.window}-frame windows)"
     if isinstance(recon, BalancedStream) and recon.network_share:
         share = sum(recon.network_share) / len(recon.network_share)
         return f" (quality balanced: the network ran on {share:.0%} of the pixels)"

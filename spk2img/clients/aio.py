@@ -60,6 +60,7 @@ class AsyncClient(ClientBase):
         format: Format = "float32",
         gamma: float | None = None,
         quality: Quality = "best",
+        binning: int = 1,
     ) -> AsyncIterator[Frame]:
         """:meth:`Client.reconstruct <spk2img.clients.Client.reconstruct>` as an async generator;
         ``source`` may also be an async iterable of frames. A sync iterable is drawn from in a
@@ -69,7 +70,7 @@ class AsyncClient(ClientBase):
         attempt = 0
         while True:
             exchange = self._exchange(
-                upload, centers, stride, method, window, format, gamma, quality
+                upload, centers, stride, method, window, format, gamma, quality, binning
             )
             try:
                 async for frame in stream_frames_async(

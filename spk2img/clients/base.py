@@ -66,9 +66,12 @@ class ClientBase:
         format: Format,
         gamma: float | None,
         quality: Quality = "best",
+        binning: int = 1,
     ) -> Exchange:
         """A fresh exchange (one per attempt) for reconstructing ``upload``."""
-        params = reconstruct_params(upload, centers, stride, method, window, format, gamma, quality)
+        params = reconstruct_params(
+            upload, centers, stride, method, window, format, gamma, quality, binning
+        )
         return Exchange(self.service, self.service.target("/v1/reconstruct", params), upload.nbytes)
 
     def _stream_retry_delay(

@@ -79,9 +79,10 @@ def reconstruct_params(
     format: str,
     gamma: float | None,
     quality: str = "best",
+    binning: int = 1,
 ) -> dict[str, str]:
     """The query of ``POST /v1/reconstruct`` (docs/http.md); ``centers`` as a list or ``"40,80"``;
-    ``quality`` is sent when it is not the default ``best``."""
+    ``quality`` and ``binning`` are sent when they are not the defaults (``best``, 1)."""
     params = {
         "height": str(upload.height),
         "width": str(upload.width),
@@ -97,6 +98,8 @@ def reconstruct_params(
         params["gamma"] = str(gamma)
     if quality != "best":
         params["quality"] = quality
+    if binning != 1:
+        params["binning"] = str(binning)
     return params
 
 

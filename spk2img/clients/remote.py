@@ -37,7 +37,7 @@ def reconstruct_file_remote(
     """
     spikes = read_spikes(args.input, args.height, args.width)
     n_frames, height, width = spikes.shape
-    plan = method_plan(args.method, args.centers, stride, args.window)
+    plan = method_plan(args.method, args.centers, stride, args.window, args.binning)
     n_out = len(plan.centers_for(n_frames))
     source = args.input if isinstance(spikes, DatStream) else np.asarray(spikes)
     centers = None if plan.centers is None else plan.centers.tolist()
@@ -52,6 +52,7 @@ def reconstruct_file_remote(
                 method=args.method,
                 window=args.window,
                 quality=args.quality,
+                binning=args.binning,
             )
             bar = tqdm(
                 frames,

@@ -60,6 +60,7 @@ class Client(ClientBase):
         format: Format = "float32",
         gamma: float | None = None,
         quality: Quality = "best",
+        binning: int = 1,
     ) -> Iterator[Frame]:
         """Upload a spike stream and yield ``(centre, image)`` for each requested centre as soon
         as the service sends it — while the upload is still going.
@@ -80,6 +81,8 @@ class Client(ClientBase):
             quality: for ``net``: ``"best"`` (the network everywhere), ``"balanced"`` (the
                 network only on tiles that move or are dim, TFP elsewhere) or ``"fast"``
                 (TFP over the network's 41 frames); see :mod:`spk2img.core.adaptive`.
+            binning: for ``net`` with quality ``best``, on dim streams: frames merged into each
+                of the network's 41 (:func:`spk2img.suggest_binning` picks one; 1: none).
 
         Nothing happens until iteration starts. Connection failures and 503s are retried (see
         :class:`~spk2img.clients.retry.RetryPolicy`) until the first frame arrives, unless a
@@ -91,7 +94,7 @@ class Client(ClientBase):
         attempt = 0
         while True:
             exchange = self._exchange(
-                upload, centers, stride, method, window, format, gamma, quality
+                upload, centers, stride, method, window, format, gamma, quality, binning
             )
             body = cast(Iterator[bytes], upload.body())  # open_upload makes no async body
             try:

@@ -18,7 +18,7 @@ import numpy as np
 
 from .light import SPIKE_RATE
 from .spikes import as_spike_array
-from .windows import NET_WINDOW, CenterPlan, WindowError
+from .windows import NET_WINDOW, CenterPlan, WindowError, net_window
 
 Frame = tuple[int, np.ndarray]  # (centre index, (H, W) float32 linear intensity in [0, 1])
 
@@ -125,19 +125,35 @@ Predictor = Callable[[np.ndarray], np.ndarray]
 
 
 class NetStream(WindowedReconstructor):
-    """The network on every due 41-frame window, batched ``max_batch`` windows at a time."""
+    """The network on every due 41-frame window, batched ``max_batch`` windows at a time.
+
+    With ``binning`` K > 1 (dim streams), the window spans :func:`net_window` (K) stream frames
+    and each of the network's 41 frames is the union of K consecutive ones (a spike where any
+    fired), as a camera with a K times longer frame would film it: a dim pixel fires K times
+    as often per network frame, so the network sees the light it was trained on; the image is
+    divided by K back to the stream's intensity scale (pixels brighter than 1/K saturate).
+    """
 
     def __init__(
-        self, height: int, width: int, plan: CenterPlan, predict: Predictor, max_batch: int = 1
+        self,
+        height: int,
+        width: int,
+        plan: CenterPlan,
+        predict: Predictor,
+        max_batch: int = 1,
+        binning: int = 1,
     ):
-        if plan.window != NET_WINDOW:
-            raise WindowError(f"the network needs a {NET_WINDOW}-frame window, got {plan.window}")
+        if plan.window != net_window(binning):
+            raise WindowError(
+                f"the network with binning {binning} needs a {net_window(binning)}-frame "
+                f"window, got {plan.window}"
+            )
         super().__init__(height, width, plan)
-        self.predict, self.max_batch = predict, max_batch
+        self.predict, self.max_batch, self.binning = predict, max_batch, binning
         self._batch: list[tuple[int, np.ndarray]] = []
 
     def _due(self, k: int) -> list[Frame]:
-        self._batch.append((k, np.stack(self._frames)))
+        self._batch.append((k, bin_frames(np.stack(self._frames), self.binning)))
         return self._flush() if len(self._batch) >= self.max_batch else []
 
     def _flush(self) -> list[Frame]:
@@ -147,7 +163,19 @@ class NetStream(WindowedReconstructor):
         windows = np.stack([w for _, w in self._batch]).astype(np.float32)
         self._batch = []
         images = self.predict(windows)
+        if self.binning > 1:
+            images = images / np.float32(self.binning)
         return list(zip(centers, images, strict=True))
+
+
+def bin_frames(window: np.ndarray, binning: int) -> np.ndarray:
+    """The network's ``(41, H, W)`` frames from a ``(net_window(binning), H, W)`` 0/1 window:
+    frame ``j`` is 1 where any of stream frames ``j * binning .. (j + 1) * binning - 1`` fired
+    (the window's extra last frame, for an even ``binning``, is dropped)."""
+    if binning == 1:
+        return window
+    merged = window[: NET_WINDOW * binning].reshape(NET_WINDOW, binning, *window.shape[1:])
+    return merged.max(axis=1)
 
 
 class TFIStream(StreamingReconstructor):

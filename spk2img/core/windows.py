@@ -13,6 +13,8 @@ import numpy as np
 from .errors import InputError
 
 NET_WINDOW = 41
+MAX_BINNING = 64
+"""The most stream frames merged into one network frame (a window of 41 x 64 = 2,624 frames)."""
 
 
 class WindowError(InputError):
@@ -24,6 +26,21 @@ def check_window(window: int) -> int:
     if int(window) != window or window < 1 or window % 2 == 0:
         raise WindowError(f"window must be a positive odd number of frames, got {window}")
     return int(window)
+
+
+def check_binning(binning: int) -> int:
+    """Return ``binning`` (stream frames merged into each of the network's 41) if it is an
+    integer in 1 .. :data:`MAX_BINNING`, else raise :class:`WindowError`."""
+    if int(binning) != binning or not 1 <= binning <= MAX_BINNING:
+        raise WindowError(f"binning must be an integer from 1 to {MAX_BINNING}, got {binning}")
+    return int(binning)
+
+
+def net_window(binning: int = 1) -> int:
+    """Stream frames the network's window spans when each of its 41 frames merges ``binning``
+    stream frames: ``41 * binning``, plus one for an even ``binning`` so that the window stays
+    centred (odd); that extra last frame is not used."""
+    return NET_WINDOW * check_binning(binning) | 1
 
 
 def parse_centers(text: str) -> list[int]:

@@ -17,10 +17,10 @@ from PIL import Image
 from spk2img.core.block_model import BlockCodec
 from spk2img.core.framing import encode_frame
 from spk2img.core.light import to_display
-from spk2img.core.methods import build_reconstructor
+from spk2img.core.methods import build_reconstructor, method_window
 from spk2img.core.spikes import SpikeDecoder
 from spk2img.core.stream import Frame, Predictor, TFIStream
-from spk2img.core.windows import NET_WINDOW, CenterPlan
+from spk2img.core.windows import CenterPlan
 
 from .errors import RequestError
 from .schemas import ReconstructQuery
@@ -59,7 +59,7 @@ def job_memory(query: ReconstructQuery, settings: ServiceSettings, response_byte
     waiting for the client (``response_bytes``, at most ``response_buffer_bytes``)."""
     pixels = query.height * query.width
     model = query.method == "net" and query.quality != "fast"
-    window = NET_WINDOW if query.method == "net" else query.window
+    window = method_window(query.method, query.window, query.binning)
     memory = JOB_BYTES + pixels * window * WINDOW_BYTES_PER_PIXEL
     if model:
         memory += pixels * NET_BYTES_PER_PIXEL * settings.batch
@@ -106,6 +106,7 @@ class StreamJob:
             settings.batch,
             codec,
             query.quality,
+            query.binning,
         )
         pixels = query.height * query.width
         self.step = settings.batch if query.method == "net" else max(1, STEP_PIXELS // pixels)

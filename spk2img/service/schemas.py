@@ -11,6 +11,7 @@ from spk2img.core.framing import FORMATS
 from spk2img.core.light import DISPLAY_GAMMA
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
 from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
+from spk2img.core.windows import MAX_BINNING
 
 Method = Literal[METHODS]  # type: ignore[valid-type]
 FrameFormat = Literal[tuple(FORMATS)]  # type: ignore[valid-type]
@@ -44,6 +45,13 @@ class ReconstructQuery(BaseModel):
         "best",
         description="for net: best (the network everywhere), balanced (the network only on "
         "tiles that move or are dim, TFP elsewhere) or fast (TFP over the 41 frames)",
+    )
+    binning: int = Field(
+        1,
+        ge=1,
+        le=MAX_BINNING,
+        description="for net with quality best, on dim streams: stream frames merged into each "
+        "of the network's 41 (a window spans 41 x binning frames; 1: none)",
     )
     format: FrameFormat = Field(
         "float32", description="float32 linear intensity, or uint8/png display values"

@@ -59,7 +59,9 @@ class ServiceSettings(BaseSettings):
     max_body_bytes: int = Field(256 * 2**20, ge=1, description="upload size limit in bytes")
     max_frames: int = Field(20_000, ge=1, description="spike frames per request")
     max_pixels: int = Field(512 * 512, ge=1, description="height*width limit in pixels")
-    max_window: int = Field(401, ge=1, description="largest TFP/TFI window in frames")
+    max_window: int = Field(
+        401, ge=1, description="largest window in frames (TFP/TFI's, or the network's 41 x binning)"
+    )
     max_tfi_pending: int = Field(
         64, ge=1, description="TFI centres waiting for a pixel's next spike"
     )

@@ -12,7 +12,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, Request
 
 from spk2img.core.framing import MEDIA_TYPE
-from spk2img.core.methods import method_plan
+from spk2img.core.methods import method_plan, method_window
 from spk2img.core.spikes import frame_nbytes
 from spk2img.core.windows import CenterPlan
 
@@ -142,9 +142,12 @@ def _plan(query: ReconstructQuery, settings: ServiceSettings) -> CenterPlan:
             f"{query.height}x{query.width} frames are over the limit of "
             f"{settings.max_pixels} pixels",
         )
-    if query.method != "net" and query.window > settings.max_window:
-        raise RequestError(422, f"window {query.window} is over the limit of {settings.max_window}")
-    return method_plan(query.method, query.centers, query.stride, query.window)
+    if query.binning != 1 and query.quality != "best":
+        raise RequestError(422, f"binning is for quality best, not {query.quality}")
+    window = method_window(query.method, query.window, query.binning)
+    if window > settings.max_window:
+        raise RequestError(422, f"window {window} is over the limit of {settings.max_window}")
+    return method_plan(query.method, query.centers, query.stride, query.window, query.binning)
 
 
 def _frames_in(length: int, query: ReconstructQuery, settings: ServiceSettings) -> int:
