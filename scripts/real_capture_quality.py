@@ -69,12 +69,22 @@ def side_by_side(images: dict[str, np.ndarray], scores: dict[str, float]) -> Ima
     return sheet
 
 
+def parse_region(text: str) -> tuple[slice, slice]:
+    """``"Y0:Y1,X0:X1"`` -> a pair of slices."""
+    rows, cols = (tuple(int(v) for v in part.split(":")) for part in text.split(","))
+    return slice(*rows), slice(*cols)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("capture", type=Path)
     parser.add_argument("--checkpoint", action="append", default=[], metavar="NAME=CKPT")
     parser.add_argument("--binning", default="1", help="K or auto (spk2img.suggest_binning)")
     parser.add_argument("--step", type=int, default=20, help="frames between centres")
+    parser.add_argument(
+        "--region",
+        help="also score this part of each frame, Y0:Y1,X0:X1 (over 192x192, NIQE's minimum)",
+    )
     parser.add_argument("--image", type=Path)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
@@ -91,9 +101,16 @@ def main() -> None:
     frames = reconstructions(spikes, centers, paths, binning)
     scores = {name: [niqe(display_grey(f)) for f in stack] for name, stack in frames.items()}
     means = {name: float(np.mean(values)) for name, values in scores.items()}
+    region = {}
+    if args.region:
+        part = parse_region(args.region)
+        region = {
+            name: [niqe(display_grey(f)[part]) for f in stack] for name, stack in frames.items()
+        }
     print(f"NIQE (lower is more natural; networks with binning {binning}), centres {centers}:")
     for name, value in means.items():
-        print(f"  {name:>12}: {value:.3f}")
+        inner = f"   region {np.mean(region[name]):.3f}" if region else ""
+        print(f"  {name:>12}: {value:.3f}{inner}")
     middle = len(centers) // 2
     if args.image:
         middle_scores = {name: values[middle] for name, values in scores.items()}
@@ -102,6 +119,9 @@ def main() -> None:
         report = {"capture": args.capture.name, "binning": binning, "centers": centers}
         report |= {"mean_niqe": means}
         report |= {"niqe": scores, "image_center": centers[middle]}
+        if region:
+            report["region"] = args.region
+            report["region_mean_niqe"] = {n: float(np.mean(v)) for n, v in region.items()}
         args.json.write_text(json.dumps(report, indent=1) + "\n")
 
 
