@@ -36,6 +36,7 @@ from spk2img.core.classical import tfi, tfp
 from spk2img.core.framing import encode_done
 from spk2img.core.light import to_display
 from spk2img.core.spikes import pack_frames, write_spikes
+from spk2img.core.stream import bin_frames
 
 try:
     import uvicorn
@@ -178,6 +179,20 @@ def test_cli_url_equals_local(url, files, tmp_path, selection):
     np.testing.assert_array_equal(remote["centers"], local["centers"])
     np.testing.assert_array_equal(remote["frames"], local["frames"])
     assert remote["frames"].dtype == np.float32 and remote["centers"].dtype == np.int64
+
+
+@needs_service
+def test_binning_through_the_client_and_the_cli_equals_local(url, spikes, files, tmp_path):
+    wanted = [41, 80, 118]  # binning 2: 83-frame windows
+    with Client(url) as client:
+        _, frames = collect(client.reconstruct(spikes, centers=wanted, binning=2))
+    merged = [bin_frames(spikes[k - 41 : k + 42], 2) for k in wanted]
+    expected = np.stack([tfp(m, [20], 41)[0] / 2 for m in merged])  # the TFP-41 stand-in
+    np.testing.assert_allclose(frames, expected, atol=1e-6)
+    common = ["reconstruct", str(files["npy"]), "--centers", "41,80,118", "--no-progress"]
+    out = tmp_path / "remote.npz"
+    assert cli_main([*common, "--binning", "2", "--url", url, "--out", str(out)]) == 0
+    np.testing.assert_array_equal(np.load(out)["frames"], frames)
 
 
 @needs_service
