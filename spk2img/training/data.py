@@ -10,6 +10,7 @@ processes may make them in any order.
 from __future__ import annotations
 
 import multiprocessing
+import time
 import warnings
 from collections import deque
 from dataclasses import dataclass
@@ -153,6 +154,10 @@ def _worker_batch(step: int, size: int) -> tuple[np.ndarray, np.ndarray]:
     return _WORKER_MAKER.batch(step, size)
 
 
+CLOSE_WAIT_S = 30.0
+"""Seconds :meth:`Batches.close` waits for the batches in flight before terminating workers."""
+
+
 class Batches:
     """``next()`` -> the batches of ``start``, ``start + 1``, ... in order, made ahead by
     ``workers`` processes (0: in this process), at most ``2 * workers`` batches ahead."""
@@ -183,7 +188,19 @@ class Batches:
         return out
 
     def close(self) -> None:
-        if self.pool is not None:
+        """Stop the workers. The batches in flight finish first (up to :data:`CLOSE_WAIT_S`)
+        and the pool closes; only workers still busy after that are terminated. (Terminating a
+        worker while it writes a batch back leaves the result queue's lock held, and the
+        pool's own threads then wait on it forever.)"""
+        if self.pool is None:
+            return
+        deadline = time.monotonic() + CLOSE_WAIT_S
+        for result in self.pending:
+            result.wait(max(0.0, deadline - time.monotonic()))
+        if all(result.ready() for result in self.pending):
+            self.pool.close()
+        else:
             self.pool.terminate()
-            self.pool.join()
-            self.pool = None
+        self.pool.join()
+        self.pool = None
+        self.pending.clear()
