@@ -158,9 +158,7 @@ class Reconstructor:
         binning: int = 1,
     ):
         self.method, self.quality = check_method(method), check_quality(quality)
-        self.window = method_window(method, window, binning)
-        if binning != 1 and quality != "best":
-            raise InputError(f"binning is for quality best, not {quality}")
+        self.window = method_window(method, window, binning, quality)
         self.binning = binning
         if backend not in ("onnx", "torch"):
             raise ValueError(f"unknown backend {backend!r}: choose onnx or torch")

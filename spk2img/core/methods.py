@@ -30,11 +30,16 @@ def method_plan(
     return CenterPlan.parse(method_window(method, window, binning), centers, stride)
 
 
-def method_window(method: str, window: int = DEFAULT_TFP_WINDOW, binning: int = 1) -> int:
-    """Stream frames one reconstruction of ``method`` needs (checks the method and binning)."""
+def method_window(
+    method: str, window: int = DEFAULT_TFP_WINDOW, binning: int = 1, quality: str = "best"
+) -> int:
+    """Stream frames one reconstruction of ``method`` needs; checks the method, the quality
+    and that ``binning`` applies (``net`` with quality ``best``)."""
     check_method(method)
     if binning != 1 and method != "net":
         raise InputError(f"binning is for method net, not {method}")
+    if check_quality(quality) != "best" and binning != 1:
+        raise InputError(f"binning is for quality best, not {quality}")
     return net_window(binning) if method == "net" else window
 
 
@@ -66,13 +71,11 @@ def build_reconstructor(
     only; ``plan`` from :func:`method_plan` with it) merges that many stream frames into each
     network frame (:class:`~spk2img.core.stream.NetStream`), every window whole.
     """
-    method_window(method, plan.window, binning)  # checks the method and that binning fits it
+    method_window(method, plan.window, binning, quality)  # checks method, quality, binning
     if method == "tfp":
         return TFPStream(height, width, plan)
     if method == "tfi":
         return TFIStream(height, width, plan)
-    if check_quality(quality) != "best" and binning != 1:
-        raise InputError(f"binning is for quality best, not {quality}")
     if quality == "fast":
         return TFPStream(height, width, plan)
     if quality == "balanced" and predict is not None:

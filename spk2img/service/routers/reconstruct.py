@@ -142,9 +142,7 @@ def _plan(query: ReconstructQuery, settings: ServiceSettings) -> CenterPlan:
             f"{query.height}x{query.width} frames are over the limit of "
             f"{settings.max_pixels} pixels",
         )
-    if query.binning != 1 and query.quality != "best":
-        raise RequestError(422, f"binning is for quality best, not {query.quality}")
-    window = method_window(query.method, query.window, query.binning)
+    window = method_window(query.method, query.window, query.binning, query.quality)
     if window > settings.max_window:
         raise RequestError(422, f"window {window} is over the limit of {settings.max_window}")
     return method_plan(query.method, query.centers, query.stride, query.window, query.binning)
