@@ -27,7 +27,7 @@ from spk2img.core.onnx_backend import OnnxModel
 from spk2img.core.scenes import StillScene
 from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.core.simulator import SensorConfig, simulate
-from spk2img.core.stream import bin_frames
+from spk2img.core.stream import net_input
 from spk2img.core.windows import net_window
 from spk2img.training.natural_validation import find_held_out
 from spk2img.training.sources import load_photo
@@ -46,8 +46,7 @@ def dim_crop(photo: np.ndarray, rate: float) -> np.ndarray:
 
 
 def network(model: OnnxModel, spikes: np.ndarray, center: int, binning: int) -> np.ndarray:
-    half = net_window(binning) // 2
-    window = bin_frames(spikes[center - half : center + half + 1], binning)
+    window = net_input(spikes, center, binning)
     return model(window[None].astype(np.float32))[0] / binning
 
 

@@ -25,7 +25,7 @@ from spk2img.core.binning import suggest_binning
 from spk2img.core.classical import tfi, tfp
 from spk2img.core.niqe import display_grey, niqe
 from spk2img.core.spikes import as_spike_array, read_spikes
-from spk2img.core.stream import bin_frames
+from spk2img.core.stream import net_input
 from spk2img.core.windows import NET_WINDOW, net_window
 from spk2img.model.checkpoint import load_model
 from spk2img.model.predictor import DEFAULT_CHECKPOINT
@@ -37,10 +37,7 @@ def reconstructions(
     """``{method: (N, H, W) float32 linear intensity}`` at ``centers``; the networks with
     ``binning`` frames merged into each of their 41."""
     out = {"TFP-41": tfp(spikes, centers, NET_WINDOW), "TFI": tfi(spikes, centers, NET_WINDOW)}
-    half = net_window(binning) // 2
-    windows = np.stack(
-        [bin_frames(spikes[k - half : k + half + 1], binning) for k in centers]
-    ).astype(np.float32)
+    windows = np.stack([net_input(spikes, k, binning) for k in centers]).astype(np.float32)
     for name, path in checkpoints.items():
         model = load_model(path)
         with torch.inference_mode():

@@ -10,7 +10,7 @@ import numpy as np
 from spk2img import api
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.core.adaptive import QUALITIES, BalancedStream
-from spk2img.core.binning import firing_rates
+from spk2img.core.binning import binning_for_rates, firing_rates
 from spk2img.core.block_stream import BlockReuseStream
 from spk2img.core.errors import InputError
 from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
@@ -173,14 +173,15 @@ def parse_binning(text: str) -> int | str:
 def _choose_binning(args: argparse.Namespace, spikes: api.Spikes) -> int:
     """``--binning``, with ``auto`` resolved from the stream's firing rate; without the flag on
     a dim stream, a note that names the binning it would take."""
-    suggested = api.suggest_binning(spikes)
+    rates = firing_rates(spikes)
+    suggested = binning_for_rates(rates, len(spikes))
     if args.binning == "auto":
-        say(args, f"binning {suggested} ({firing_rates(spikes).mean():.3f} spikes/pixel/frame)")
+        say(args, f"binning {suggested} ({rates.mean():.3f} spikes/pixel/frame)")
         return suggested
     if args.binning == 1 and suggested > 1:
         say(
             args,
-            f"note: a dim stream ({firing_rates(spikes).mean():.3f} spikes/pixel/frame): "
+            f"note: a dim stream ({rates.mean():.3f} spikes/pixel/frame): "
             f"--binning {suggested} (or auto) gives the network {suggested} frames per frame",
         )
     return args.binning

@@ -36,14 +36,20 @@ def firing_rates(spikes) -> np.ndarray:
 
 
 def suggest_binning(spikes) -> int:
-    """The ``binning`` for a ``(T, H, W)`` 0/1 stream: 1 for a normally lit one; for a dim one
-    the ``K`` that lifts its mean rate to :data:`TARGET_RATE` spikes a network frame, lowered
-    until the :data:`BRIGHT_PERCENTILE` th percentile pixel fires under ``SPIKE_RATE`` a frame
-    once merged, and until the stream holds one window of ``41 * K`` frames."""
-    rates = firing_rates(spikes)
+    """The ``binning`` for a ``(T, H, W)`` 0/1 stream: :func:`binning_for_rates` of its
+    :func:`firing_rates`."""
+    return binning_for_rates(firing_rates(spikes), len(spikes))
+
+
+def binning_for_rates(rates: np.ndarray, n_frames: int) -> int:
+    """The ``binning`` for a stream of ``n_frames`` frames whose pixels fire ``rates`` ``(H, W)``
+    spikes a frame: 1 for a normally lit one; for a dim one the ``K`` that lifts the mean rate
+    to :data:`TARGET_RATE` spikes a network frame, lowered until the
+    :data:`BRIGHT_PERCENTILE` th percentile pixel fires under ``SPIKE_RATE`` a frame once
+    merged, and until the stream holds one window of ``41 * K`` frames."""
     mean, bright = float(rates.mean()), float(np.percentile(rates, BRIGHT_PERCENTILE))
     binning = int(TARGET_RATE / mean) if mean > 0 else MAX_BINNING
     if bright > 0:
         binning = min(binning, int(SPIKE_RATE / bright))
-    binning = min(binning, len(spikes) // NET_WINDOW, MAX_BINNING)
+    binning = min(binning, n_frames // NET_WINDOW, MAX_BINNING)
     return max(1, binning)

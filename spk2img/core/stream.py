@@ -168,6 +168,14 @@ class NetStream(WindowedReconstructor):
         return list(zip(centers, images, strict=True))
 
 
+def net_input(spikes, center: int, binning: int = 1) -> np.ndarray:
+    """The network's ``(41, H, W)`` 0/1 frames for centre ``center`` of a ``(T, H, W)`` stream
+    (an array or a memory-mapped stream): its :func:`net_window` frames, merged by
+    :func:`bin_frames`."""
+    half = net_window(binning) // 2
+    return bin_frames(np.asarray(spikes[center - half : center + half + 1]), binning)
+
+
 def bin_frames(window: np.ndarray, binning: int) -> np.ndarray:
     """The network's ``(41, H, W)`` frames from a ``(net_window(binning), H, W)`` 0/1 window:
     frame ``j`` is 1 where any of stream frames ``j * binning .. (j + 1) * binning - 1`` fired

@@ -30,7 +30,7 @@ from spk2img.core.evaluation import (
 )
 from spk2img.core.onnx_backend import OnnxModel, graph_metadata
 from spk2img.core.spikes import as_spike_array, read_spikes
-from spk2img.core.stream import bin_frames
+from spk2img.core.stream import net_input
 from spk2img.core.windows import NET_WINDOW, net_window
 from spk2img.export.metadata import trained_sensors
 from spk2img.model.checkpoint import load_checkpoint, stored_config
@@ -81,7 +81,7 @@ def _niqe_at_centres(spikes: np.ndarray, net: OnnxModel, binning: int) -> dict:
 
     half = net_window(binning) // 2
     centers = list(range(half, len(spikes) - half, REAL_CAPTURE_STEP))
-    windows = [bin_frames(spikes[k - half : k + half + 1], binning) for k in centers]
+    windows = [net_input(spikes, k, binning) for k in centers]
     frames = {
         "TFP-41": tfp(spikes, centers, NET_WINDOW),
         "TFI": tfi(spikes, centers, NET_WINDOW),
