@@ -22,6 +22,7 @@ from spk2img.bench.worker import peak_rss_mib
 from spk2img.cli import main
 from spk2img.core.classical import tfp
 from spk2img.core.evaluation import score_images
+from spk2img.core.metrics import psnr
 
 
 @pytest.fixture(scope="module")
@@ -163,6 +164,8 @@ def test_quick_markdown_tables(quick_run):
         "p99 ms",
         "overhead (x)",
         *SCENE_CLASSES,
+        "ideal sensor",
+        "real-like sensor",
     ):
         assert f"| {column} |" in text or f" {column} |" in text, column
     table = text.split("## Speed and error")[1].split("##")[0]
@@ -185,6 +188,21 @@ def test_benchmark_set_is_fixed_and_scores_classical_methods():
     assert best_tfp_window(cases) in TFP_WINDOWS
     perfect = quality(cases.truth, cases)
     assert perfect["psnr"] == math.inf and perfect["ssim"] == pytest.approx(1.0)
+
+
+def test_quality_splits_the_benchmark_set_by_sensor():
+    """Per-sensor scores average exactly the windows each sensor filmed: spoiling only the
+    real-like windows lowers their score alone."""
+    cases = benchmark_set(2, 24, 32)
+    assert cases.sensors == ["ideal", "real"] * len(SCENE_CLASSES)
+    images = cases.truth.copy()
+    images[1::2] = np.clip(images[1::2] + 0.1, 0, 1)  # the real-like windows, 20 dB off at most
+    q = quality(images, cases)
+    assert set(q["sensors"]) == {"ideal", "real"}
+    assert q["sensors"]["ideal"]["psnr"] == math.inf
+    spoilt = [psnr(i, t) for i, t in zip(images[1::2], cases.truth[1::2], strict=True)]
+    assert q["sensors"]["real"]["psnr"] == pytest.approx(np.mean(spoilt))
+    assert 19.9 < q["sensors"]["real"]["psnr"] < 40
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="VmHWM is Linux's")

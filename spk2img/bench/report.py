@@ -8,10 +8,11 @@ could not run). A row has ``label``, ``kind``, ``backend``, ``weights``,
 ``scored``, ``error`` (``None`` or why it failed), ``params``, ``macs`` (``{"reference",
 "timed"}`` or ``None`` for classical methods); once measured ``ms_per_frame``, ``seconds``,
 ``load_s`` (by thread count) and ``peak_rss_mib``; ``quality`` (``psnr``, ``ssim``,
-``classes``) when scored and ``max_abs_error`` for networks. With ``--data``, ``natural``
-describes the natural validation (:meth:`~spk2img.bench.natural.NaturalSet.describe`) and each
-scored row has ``natural`` (:func:`~spk2img.core.evaluation.score_images`: ``psnr_ideal``,
-``psnr_fitted``, ``ssim_ideal``, ``ssim_fitted`` …); without it ``natural`` is ``None``.
+``classes``, ``sensors``) when scored and ``max_abs_error`` for networks. With ``--data``,
+``natural`` describes the natural validation
+(:meth:`~spk2img.bench.natural.NaturalSet.describe`) and each scored row has ``natural``
+(:func:`~spk2img.core.evaluation.score_images`: ``psnr_ideal``, ``psnr_fitted``,
+``ssim_ideal``, ``ssim_fitted`` …); without it ``natural`` is ``None``.
 """
 
 from __future__ import annotations
@@ -130,13 +131,21 @@ def speed_table(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+SENSOR_NAMES = {"ideal": "ideal sensor", "real": "real-like sensor"}
+"""Benchmark-set sensor -> its column in the per-class table."""
+
+
 def class_table(results: dict) -> str:
+    """PSNR / SSIM per scene class, then per sensor."""
     names = [n for n in SCENE_CLASSES if n in results["cases"]["classes"]]
-    lines = ["## PSNR (dB) / SSIM per scene class", "", *table_head(["method", "backend", *names])]
+    sensors = [s for s in SENSOR_NAMES if s in results["cases"]["sensors"]]
+    columns = ["method", "backend", *names, *(SENSOR_NAMES[s] for s in sensors)]
+    lines = ["## PSNR (dB) / SSIM per scene class and per sensor", "", *table_head(columns)]
     for row in results["rows"]:
         if "quality" in row:
-            q = row["quality"]["classes"]
-            cells = [f"{q[n]['psnr']:.2f} / {q[n]['ssim']:.3f}" for n in names]
+            q = row["quality"]
+            scores = [q["classes"][n] for n in names] + [q["sensors"][s] for s in sensors]
+            cells = [f"{g['psnr']:.2f} / {g['ssim']:.3f}" for g in scores]
             lines.append(table_row([row["label"], row["backend"], *cells]))
     return "\n".join(lines) + "\n"
 

@@ -8,14 +8,16 @@ import numpy as np
 from spk2img.core.classical import tfp
 from spk2img.core.metrics import psnr, ssim
 
-from .cases import CENTER, SCENE_CLASSES, BenchSet
+from .cases import CENTER, SCENE_CLASSES, SENSORS, BenchSet
 
 TFP_WINDOWS = tuple(range(3, 42, 2))
 
 
 def quality(images: np.ndarray, cases: BenchSet) -> dict:
     """Mean PSNR (dB) and SSIM of ``images (N, H, W)`` against ``cases.truth``, over all
-    windows (``psnr``, ``ssim``) and per scene class (``classes[name] = {psnr, ssim}``)."""
+    windows (``psnr``, ``ssim``), per scene class (``classes[name] = {psnr, ssim}``) and per
+    sensor (``sensors["ideal" | "real"] = {psnr, ssim}``: a model trained for one sensor regime
+    is judged on the windows it is for)."""
     scores = [(psnr(i, t), ssim(i, t)) for i, t in zip(images, cases.truth, strict=True)]
 
     def mean(picked: list[tuple[float, float]]) -> dict:
@@ -24,12 +26,17 @@ def quality(images: np.ndarray, cases: BenchSet) -> dict:
             "ssim": float(np.mean([s for _, s in picked])),
         }
 
-    classes = {
-        name: mean([s for s, c in zip(scores, cases.classes, strict=True) if c == name])
-        for name in SCENE_CLASSES
-        if name in cases.classes
+    def per_group(labels: list[str], names) -> dict:
+        grouped = {
+            name: [s for s, g in zip(scores, labels, strict=True) if g == name] for name in names
+        }
+        return {name: mean(picked) for name, picked in grouped.items() if picked}
+
+    return {
+        **mean(scores),
+        "classes": per_group(cases.classes, SCENE_CLASSES),
+        "sensors": per_group(cases.sensors, SENSORS),
     }
-    return {**mean(scores), "classes": classes}
 
 
 def max_abs_error(images: np.ndarray, reference: np.ndarray) -> float:
