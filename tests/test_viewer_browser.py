@@ -111,6 +111,18 @@ def run_and_wait(page) -> None:
     assert page.is_hidden("#error"), page.inner_text("#error")
 
 
+def reconstruct_requests(page) -> list[str]:
+    """The query strings of the page's ``v1/reconstruct`` requests from now on."""
+    queries: list[str] = []
+
+    def remember(request) -> None:
+        if "/v1/reconstruct?" in request.url:
+            queries.append(request.url.split("?", 1)[1])
+
+    page.on("request", remember)
+    return queries
+
+
 def test_dat_upload_two_methods_pixels_and_downloads(page, service, tmp_path):
     path = tmp_path / "rec.dat"
     path.write_bytes(BODY)
@@ -182,12 +194,11 @@ def test_a_long_plan_is_split_into_requests(browser, service, tmp_path):
     context = browser.new_context()
     page = context.new_page()
     page.goto(f"{service.url}/?budget={12 * (28 + H * W)}")
-    requests: list[str] = []
-    page.on("request", lambda request: requests.append(request.url))
+    requests = reconstruct_requests(page)
     choose(page, path, height=str(H), width=str(W), method="tfp", stride="3")
     run_and_wait(page)
     whole = api_frames(service, f"height={H}&width={W}&method=tfp&window=41&stride=3")
-    assert len([url for url in requests if "/v1/reconstruct" in url]) == 5
+    assert len(requests) == 5
     label = f"frame {len(whole)} of {len(whole)} · centre {max(whole)}"
     assert len(whole) == 54 and page.inner_text("#frame-label") == label
     for step in range(len(whole) - 1, -1, -13):
@@ -215,6 +226,58 @@ def test_the_services_error_appears_on_the_page(page, service, tmp_path):
     assert message == f"The service answered 422: {expected.json()['detail']}"
     assert "not a whole number of 33x48 frames" in message
     assert page.is_enabled("#run")  # ready for the next try
+
+
+def test_binning_is_sent_for_net_best_only(page, service, tmp_path):
+    """``binning=2`` goes with every request of a split plan (a budget of 5 frames: 12 centres
+    of 83-frame windows in 3 requests), and the page shows the frames of one API request; for
+    tfp, or quality fast, the field is disabled and no request carries it."""
+    path = tmp_path / "rec.dat"
+    path.write_bytes(BODY)
+    page.goto(f"{service.url}/?budget={5 * (28 + H * W)}")
+    queries = reconstruct_requests(page)
+    assert page.is_enabled("#binning") and page.is_visible("#binning-hint")
+    choose(page, path, height=str(H), width=str(W), method="net", binning="2", stride="10")
+    run_and_wait(page)
+    whole = api_frames(service, f"height={H}&width={W}&method=net&binning=2&stride=10")
+    assert sorted(whole) == list(range(41, 160, 10))
+    assert len(queries) == 3 and all("&binning=2&" in query for query in queries)
+    assert page.inner_text("#caption-a") == "net (best, binning 2), centre 151"
+    for step in (0, 6, 11):
+        page.fill("#slider", str(step))
+        centre, pixels = shown(page, "canvas-a")
+        np.testing.assert_array_equal(pixels, whole[centre])
+
+    page.select_option("#quality", "fast")
+    assert page.is_disabled("#binning") and page.is_visible("#binning-na")
+    page.select_option("#quality", "best")
+    page.select_option("#method", "tfp")
+    assert page.is_disabled("#binning") and page.is_hidden("#binning-hint")
+    queries.clear()
+    run_and_wait(page)
+    assert queries and not any("binning" in query for query in queries)
+
+
+def test_a_refused_binning_shows_the_services_message(page, service, tmp_path):
+    """Binning 3 makes the network's window 123 frames, over the test service's max_window of
+    101: the page shows the service's 422 message."""
+    path = tmp_path / "rec.dat"
+    path.write_bytes(BODY)
+    queries = reconstruct_requests(page)
+    choose(page, path, height=str(H), width=str(W), method="net", binning="3", stride="10")
+    expected = httpx.post(
+        f"{service.url}/v1/reconstruct?height={H}&width={W}&stride=10&binning=3",
+        content=BODY,
+        headers=OCTET,
+    )
+    assert expected.status_code == 422
+    page.click("#run")
+    page.wait_for_selector("#error:not([hidden])", timeout=WAIT_MS)
+    message = page.inner_text("#error")
+    assert message == f"The service answered 422: {expected.json()['detail']}"
+    assert "window 123 is over the limit of 101" in message
+    assert len(queries) == 1 and "&binning=3&" in queries[0]
+    assert page.is_enabled("#run")
 
 
 @pytest.mark.parametrize(

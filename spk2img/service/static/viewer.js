@@ -22,6 +22,7 @@
   const ui = {
     form: $("form"), file: $("file"), fileInfo: $("file-info"), height: $("height"),
     width: $("width"), preset: $("preset"), method: $("method"), quality: $("quality"),
+    binning: $("binning"), binningHint: $("binning-hint"), binningNa: $("binning-na"),
     window: $("window"), gamma: $("gamma"), useStride: $("use-stride"), stride: $("stride"),
     useCenters: $("use-centers"), centers: $("centers"), compare: $("compare"), run: $("run"),
     stop: $("stop"), progress: $("progress"), status: $("status"), error: $("error"),
@@ -99,6 +100,17 @@
   function clearError() {
     ui.error.textContent = "";
     ui.error.hidden = true;
+  }
+
+  // Binning applies to net with quality best only: the service refuses it elsewhere (422).
+  function binnable() {
+    return ui.method.value === "net" && ui.quality.value === "best";
+  }
+
+  // The stream frames a network window spans: 41 merged frames of K, plus one when K is even
+  // (so that it stays centred).
+  function netWindow(binning) {
+    return (NET_WINDOW * binning) | 1;
   }
 
   function positiveInt(input, name) {
@@ -363,7 +375,8 @@
     const stride = byStride ? positiveInt(ui.stride, "stride") : null;
     const centers = byStride ? null : ui.centers.value.replace(/\s+/g, "");
     if (!byStride && !centers) throw new Error("give the centres, e.g. 40,80,120, or a stride");
-    return { height, width, gamma, stride, centers, window: Number(ui.window.value) };
+    const binning = binnable() ? positiveInt(ui.binning, "binning") : 1;
+    return { height, width, gamma, stride, centers, binning, window: Number(ui.window.value) };
   }
 
   // The requests for one method: one when its frames fit in RESPONSE_BUDGET (exactly the query
@@ -374,7 +387,8 @@
     const base = { height, width, method: run.method, format: "uint8", gamma };
     if (run.method === "net") base.quality = run.quality;
     else base.window = settings.window;
-    const half = run.method === "net" ? (NET_WINDOW - 1) / 2 : Math.floor(settings.window / 2);
+    if (run.binning > 1) base.binning = run.binning; // binning=1 is the default: not sent
+    const half = Math.floor((run.method === "net" ? netWindow(run.binning) : settings.window) / 2);
     const whole = { start: 0, end: null, offset: 0 }; // end null: the whole file
     const asked = stride ? { stride } : { centers };
     let wanted = null; // the centres, when the page can tell them (else the service says why not)
@@ -490,10 +504,10 @@
     scheduleDraw();
   }
 
-  function newRun(method, quality, tag) {
-    const label = method === "net" ? `net (${quality})` : method;
+  function newRun(method, quality, tag, binning = 1) {
+    const label = method === "net" ? `net (${quality}${binning > 1 ? `, binning ${binning}` : ""})` : method;
     return {
-      tag, label, method, quality, frames: new Map(), centres: [], received: 0,
+      tag, label, method, quality, binning, frames: new Map(), centres: [], received: 0,
       expected: null, height: 0, width: 0, done: false, error: null, started: performance.now(),
     };
   }
@@ -515,7 +529,7 @@
     const blob = state.source.blob;
     const frameCount = blob.size % perFrame === 0 ? blob.size / perFrame : null;
     const compare = ui.compare.value;
-    state.runs = [newRun(ui.method.value, ui.quality.value, "A")];
+    state.runs = [newRun(ui.method.value, ui.quality.value, "A", settings.binning)];
     if (compare) state.runs.push(newRun(compare, "best", "B"));
     state.runs.forEach((run) => { run.settings = settings; });
     state.index = 0;
@@ -805,7 +819,8 @@
   }
 
   function runName(run) {
-    return run.method === "net" ? `net-${run.quality}` : run.method;
+    if (run.method !== "net") return run.method;
+    return `net-${run.quality}${run.binning > 1 ? `-binning${run.binning}` : ""}`;
   }
 
   async function downloadPngs() {
@@ -854,6 +869,8 @@
     ui.downloadPng.disabled = running || !haveFrames;
     ui.downloadNpz.disabled = running || !haveFrames;
     ui.quality.disabled = ui.method.value !== "net";
+    ui.binning.disabled = ui.binningHint.hidden = !binnable();
+    ui.binningNa.hidden = binnable();
     ui.window.disabled = ui.method.value === "net" && ui.compare.value !== "tfp" && ui.compare.value !== "tfi";
     ui.stride.disabled = !ui.useStride.checked;
     ui.centers.disabled = ui.useStride.checked;
@@ -888,7 +905,9 @@
     describeSource();
   });
   for (const input of [ui.height, ui.width]) input.addEventListener("input", describeSource);
-  for (const input of [ui.method, ui.compare, ui.useStride, ui.useCenters]) input.addEventListener("change", updateButtons);
+  for (const input of [ui.method, ui.quality, ui.compare, ui.useStride, ui.useCenters]) {
+    input.addEventListener("change", updateButtons);
+  }
   ui.slider.addEventListener("input", () => goTo(Number(ui.slider.value)));
   ui.prev.addEventListener("click", () => goTo(state.index - 1));
   ui.next.addEventListener("click", () => goTo(state.index + 1));
