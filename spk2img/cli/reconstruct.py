@@ -110,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     how = ""
     if args.url:
         args.no_progress = not show_progress(args)  # the client's bar follows the same rule
-        frames, centers = _reconstruct_remote(args, stride)
+        frames, centers = _reconstruct_remote(args, spikes, stride)
     else:
         frames, centers, how = _reconstruct_local(args, spikes, stride)
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -205,14 +205,14 @@ def compute_note(recon) -> str:
     return ""
 
 
-def _reconstruct_remote(args: argparse.Namespace, stride: int | None):
+def _reconstruct_remote(args: argparse.Namespace, spikes: api.Spikes, stride: int | None):
     if args.model or args.checkpoint or args.backend != "onnx" or args.device:
         raise InputError(
             "--url runs the service's own model: drop --model/--checkpoint/--backend/--device"
         )
     from spk2img.clients.remote import reconstruct_file_remote  # the client extra
 
-    return reconstruct_file_remote(args, stride)
+    return reconstruct_file_remote(args, spikes, stride)
 
 
 def save_pngs(directory: Path, frames: np.ndarray, centers: np.ndarray) -> None:

@@ -19,7 +19,7 @@ from .base import (
 )
 from .duplex import stream_frames_async
 from .errors import ConnectionFailed, Spk2ImgError
-from .protocol import Frame
+from .protocol import Frame, ReconstructRequest
 from .sources import AsyncSource, open_async_upload
 
 T = TypeVar("T")
@@ -66,12 +66,13 @@ class AsyncClient(ClientBase):
         ``source`` may also be an async iterable of frames. A sync iterable is drawn from in a
         worker thread, so a blocking camera does not block the event loop."""
         upload = await open_async_upload(source, height, width)
+        request = ReconstructRequest(
+            centers, stride, method, window, format, gamma, quality, binning
+        )
         received = False
         attempt = 0
         while True:
-            exchange = self._exchange(
-                upload, centers, stride, method, window, format, gamma, quality, binning
-            )
+            exchange = self._exchange(upload, request)
             try:
                 async for frame in stream_frames_async(
                     self.service, exchange, upload.body(), self.timeout, self.connect_timeout

@@ -4,7 +4,7 @@ settings, request building, retry decisions and the reading of plain JSON respon
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from typing import Any, Literal
 
 import httpx
@@ -12,7 +12,7 @@ import httpx
 from spk2img.core.methods import DEFAULT_TFP_WINDOW
 
 from .errors import ConnectionFailed, Spk2ImgError, error_for_status
-from .protocol import Exchange, ServiceURL, reconstruct_params
+from .protocol import Exchange, ReconstructRequest, ServiceURL
 from .retry import RetryPolicy
 from .sources import Upload
 
@@ -56,23 +56,10 @@ class ClientBase:
     def __repr__(self) -> str:
         return f"{type(self).__name__}({str(self.service)!r})"
 
-    def _exchange(
-        self,
-        upload: Upload,
-        centers: Sequence[int] | str | None,
-        stride: int | None,
-        method: Method,
-        window: int,
-        format: Format,
-        gamma: float | None,
-        quality: Quality = "best",
-        binning: int = 1,
-    ) -> Exchange:
-        """A fresh exchange (one per attempt) for reconstructing ``upload``."""
-        params = reconstruct_params(
-            upload, centers, stride, method, window, format, gamma, quality, binning
-        )
-        return Exchange(self.service, self.service.target("/v1/reconstruct", params), upload.nbytes)
+    def _exchange(self, upload: Upload, request: ReconstructRequest) -> Exchange:
+        """A fresh exchange (one per attempt) sending ``upload`` with ``request``."""
+        target = self.service.target("/v1/reconstruct", request.params(upload))
+        return Exchange(self.service, target, upload.nbytes)
 
     def _stream_retry_delay(
         self, attempt: int, error: Spk2ImgError, upload: Upload, received: bool

@@ -70,37 +70,43 @@ class ServiceURL:
         return self.prefix + path + (f"?{urlencode(params, safe=',')}" if params else "")
 
 
-def reconstruct_params(
-    upload: Upload,
-    centers: Sequence[int] | str | None,
-    stride: int | None,
-    method: str,
-    window: int,
-    format: str,
-    gamma: float | None,
-    quality: str = "best",
-    binning: int = 1,
-) -> dict[str, str]:
-    """The query of ``POST /v1/reconstruct`` (docs/http.md); ``centers`` as a list or ``"40,80"``;
-    ``quality`` and ``binning`` are sent when they are not the defaults (``best``, 1)."""
-    params = {
-        "height": str(upload.height),
-        "width": str(upload.width),
-        "method": method,
-        "window": str(window),
-        "format": format,
-    }
-    if centers is not None:
-        params["centers"] = centers if isinstance(centers, str) else ",".join(map(str, centers))
-    if stride is not None:
-        params["stride"] = str(stride)
-    if gamma is not None:
-        params["gamma"] = str(gamma)
-    if quality != "best":
-        params["quality"] = quality
-    if binning != 1:
-        params["binning"] = str(binning)
-    return params
+@dataclass(frozen=True)
+class ReconstructRequest:
+    """What one ``POST /v1/reconstruct`` asks for (docs/http.md), apart from the upload.
+
+    ``centers`` is a list or ``"40,80"``; ``quality`` and ``binning`` are sent only when they
+    are not the defaults (``best``, 1)."""
+
+    centers: Sequence[int] | str | None
+    stride: int | None
+    method: str
+    window: int
+    format: str
+    gamma: float | None
+    quality: str = "best"
+    binning: int = 1
+
+    def params(self, upload: Upload) -> dict[str, str]:
+        """The request's query for ``upload`` (its frame size goes with it)."""
+        params = {
+            "height": str(upload.height),
+            "width": str(upload.width),
+            "method": self.method,
+            "window": str(self.window),
+            "format": self.format,
+        }
+        centers = self.centers
+        if centers is not None:
+            params["centers"] = centers if isinstance(centers, str) else ",".join(map(str, centers))
+        if self.stride is not None:
+            params["stride"] = str(self.stride)
+        if self.gamma is not None:
+            params["gamma"] = str(self.gamma)
+        if self.quality != "best":
+            params["quality"] = self.quality
+        if self.binning != 1:
+            params["binning"] = str(self.binning)
+        return params
 
 
 class Exchange:

@@ -10,7 +10,7 @@ from tqdm import tqdm
 
 from spk2img.core.errors import InputError
 from spk2img.core.methods import method_plan
-from spk2img.core.spikes import DatStream, read_spikes
+from spk2img.core.spikes import DatStream
 from spk2img.core.stream import collect
 
 from .errors import Spk2ImgError
@@ -25,17 +25,17 @@ class RemoteError(InputError):
 
 
 def reconstruct_file_remote(
-    args: argparse.Namespace, stride: int | None
+    args: argparse.Namespace, spikes: np.ndarray | DatStream, stride: int | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Reconstruct ``args.input`` on the service at ``args.url`` as the local CLI would.
+    """Reconstruct ``args.input``, already read as ``spikes`` (``(T, H, W)`` 0/1: an array, or a
+    ``.dat`` memory-mapped), on the service at ``args.url`` as the local CLI would.
 
-    The input and the centres are checked here first, with the local messages; then the
+    The centres are checked here first, with the local messages; then the
     stream is uploaded (a ``.dat`` as is, an array packed) while frames come back, with a
     progress bar on stderr (after :data:`PROGRESS_DELAY_S`) unless ``args.no_progress``.
     Returns ``frames (N, H, W) float32`` (linear intensity) and ``centers (N,) int64``.
     Raises :class:`RemoteError` for any failure the service reports or a connection that fails.
     """
-    spikes = read_spikes(args.input, args.height, args.width)
     n_frames, height, width = spikes.shape
     plan = method_plan(args.method, args.centers, stride, args.window, args.binning)
     n_out = len(plan.centers_for(n_frames))

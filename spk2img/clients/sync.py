@@ -19,7 +19,7 @@ from .base import (
 )
 from .duplex import stream_frames
 from .errors import ConnectionFailed, Spk2ImgError
-from .protocol import Frame
+from .protocol import Frame, ReconstructRequest
 from .sources import Source, open_upload
 
 T = TypeVar("T")
@@ -90,12 +90,13 @@ class Client(ClientBase):
         and ``InputError`` / ``FileNotFoundError`` for a source that cannot be read.
         """
         upload = open_upload(source, height, width)
+        request = ReconstructRequest(
+            centers, stride, method, window, format, gamma, quality, binning
+        )
         received = False
         attempt = 0
         while True:
-            exchange = self._exchange(
-                upload, centers, stride, method, window, format, gamma, quality, binning
-            )
+            exchange = self._exchange(upload, request)
             body = cast(Iterator[bytes], upload.body())  # open_upload makes no async body
             try:
                 for frame in stream_frames(
