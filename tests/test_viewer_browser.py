@@ -214,18 +214,21 @@ def test_the_services_error_appears_on_the_page(page, service, tmp_path):
     path.write_bytes(BODY)
     choose(page, path, height=str(H + 1), width=str(W), method="tfp", stride="10")
     assert "not a whole number of 33×48 frames" in page.inner_text("#file-info")
-    expected = httpx.post(
-        f"{service.url}/v1/reconstruct?height={H + 1}&width={W}&stride=10&method=tfp",
-        content=BODY,
-        headers=OCTET,
-    )
+    query = f"height={H + 1}&width={W}&stride=10&method=tfp"
+    run_and_expect_refusal(page, service, query, "not a whole number of 33x48 frames")
+
+
+def run_and_expect_refusal(page, service, query: str, fragment: str) -> None:
+    """Run the page's form and check that it shows the service's own 422 message for the same
+    request (``query``), which names ``fragment``, and is ready for the next try."""
+    expected = httpx.post(f"{service.url}/v1/reconstruct?{query}", content=BODY, headers=OCTET)
     assert expected.status_code == 422
     page.click("#run")
     page.wait_for_selector("#error:not([hidden])", timeout=WAIT_MS)
     message = page.inner_text("#error")
     assert message == f"The service answered 422: {expected.json()['detail']}"
-    assert "not a whole number of 33x48 frames" in message
-    assert page.is_enabled("#run")  # ready for the next try
+    assert fragment in message
+    assert page.is_enabled("#run")
 
 
 def test_binning_is_sent_for_net_best_only(page, service, tmp_path):
@@ -265,19 +268,9 @@ def test_a_refused_binning_shows_the_services_message(page, service, tmp_path):
     path.write_bytes(BODY)
     queries = reconstruct_requests(page)
     choose(page, path, height=str(H), width=str(W), method="net", binning="3", stride="10")
-    expected = httpx.post(
-        f"{service.url}/v1/reconstruct?height={H}&width={W}&stride=10&binning=3",
-        content=BODY,
-        headers=OCTET,
-    )
-    assert expected.status_code == 422
-    page.click("#run")
-    page.wait_for_selector("#error:not([hidden])", timeout=WAIT_MS)
-    message = page.inner_text("#error")
-    assert message == f"The service answered 422: {expected.json()['detail']}"
-    assert "window 123 is over the limit of 101" in message
+    query = f"height={H}&width={W}&stride=10&binning=3"
+    run_and_expect_refusal(page, service, query, "window 123 is over the limit of 101")
     assert len(queries) == 1 and "&binning=3&" in queries[0]
-    assert page.is_enabled("#run")
 
 
 @pytest.mark.parametrize(
