@@ -12,7 +12,7 @@ from spk2img.core.errors import InputError
 from spk2img.core.simulator import SensorConfig
 from spk2img.model.checkpoint import load_checkpoint, load_model, save_checkpoint
 from spk2img.training.data import Batches, SampleMaker
-from spk2img.training.loss import hierarchical_l1
+from spk2img.training.loss import hierarchical_loss
 from spk2img.training.train import TrainConfig, learning_rate, train
 
 TINY_RUN = dict(
@@ -34,12 +34,20 @@ def _records(run_dir, kind):
     return [r for r in map(json.loads, lines) if r["kind"] == kind]
 
 
-def test_loss_is_l1_plus_weighted_intermediate_terms():
+@pytest.mark.parametrize(
+    ("norm", "expected"), [("l1", 0.1 + 0.02 * 20 * 0.5), ("l2", 0.01 + 0.02 * 20 * 0.25)]
+)
+def test_loss_is_the_final_error_plus_weighted_intermediate_terms(norm, expected):
     truth = torch.rand(2, 5, 8, 8)
     image = truth[:, 2:3] + 0.1
     estimates = truth.unsqueeze(2).expand(2, 5, 4, 8, 8) - 0.5
-    expected = 0.1 + 0.02 * 20 * 0.5
-    assert hierarchical_l1(image, estimates, truth).item() == pytest.approx(expected, rel=1e-5)
+    loss = hierarchical_loss(image, estimates, truth, norm)
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_an_unknown_loss_is_refused(tmp_path, capsys):
+    assert main(["train", "--run-dir", str(tmp_path / "run"), "--loss", "l3"]) == 2
+    assert "--loss l3: use one of l1, l2" in capsys.readouterr().err
 
 
 def test_batches_are_a_function_of_seed_and_step():
@@ -118,7 +126,7 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
     model = load_model(source / "last.pt")
     spikes, truth = (torch.from_numpy(a) for a in SampleMaker(16, seed=0).batch(0, 2))
     with torch.no_grad():
-        expected = hierarchical_l1(*model.train()(spikes), truth).item()
+        expected = hierarchical_loss(*model.train()(spikes), truth).item()
     assert _records(tuned, "train")[0]["loss"] == pytest.approx(expected, rel=1e-4)
     state = load_checkpoint(tuned / "last.pt")
     assert state["step"] == 2 and state["init_from"]["step"] == 3

@@ -33,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ("patch", int),
         ("lr", float),
         ("warmup-steps", int),
+        ("loss", str),
         ("seed", int),
         ("data-mix", str),
         ("sensor-preset", str),

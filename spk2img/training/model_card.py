@@ -140,6 +140,8 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
         else ""
     )
     init_flag = f" --init {Path(init['path']).name}" if init else ""
+    loss = tc.get("loss", "l1")  # runs from before --loss trained with L1
+    loss_flag = f" --loss {loss}" if loss != "l1" else ""
     resume = (
         f"- to continue: `mkdir -p runs/{run_dir.name} && cp {run_dir}/last.pt "
         f"runs/{run_dir.name}/`, then the command above (batches are a function of seed and "
@@ -227,13 +229,13 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
   filmed by the ideal integrate-and-fire sensor, the others by the sensor fitted to a real PKU
   capture with jittered strengths. Sources and licences of every photo and clip:
   docs/training_data.md.
-- loss: hierarchical L1 (λ = 0.02); Adam, peak lr {tc["lr"]}, warm-up {tc["warmup_steps"]}
-  steps, cosine decay; batch {tc["batch_size"]}; seed {tc["seed"]}.
+- loss: hierarchical {loss.upper()} (λ = 0.02); Adam, peak lr {tc["lr"]}, warm-up
+  {tc["warmup_steps"]} steps, cosine decay; batch {tc["batch_size"]}; seed {tc["seed"]}.
 - steps: **{state["step"]}** of {tc["steps"]} planned; **{state["wall_s"] / 3600:.2f} h** of
   optimiser steps on {state.get("hardware", f"{tc['threads']} CPU threads")}.
 - command: `spk2img train --member {member} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]} {data_flags}
-  --threads {tc["threads"]}{init_flag}`
+  --threads {tc["threads"]}{init_flag}{loss_flag}`
 {init_line}{history_line}{resume}
 {body}
 ## Validation during training

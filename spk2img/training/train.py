@@ -1,4 +1,4 @@
-"""Training Spk2ImgNet on simulated streams: hierarchical L1, Adam, checkpoints with resume,
+"""Training Spk2ImgNet on simulated streams: hierarchical L1 (or L2), Adam, checkpoints with resume,
 JSONL metrics, periodic validation against TFP and TFI, and data parallelism under ``torchrun``.
 """
 
@@ -35,7 +35,7 @@ from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
 
 from .data import Batches, DataMix, SampleMaker, check_ideal_share
-from .loss import hierarchical_l1
+from .loss import NORMS, hierarchical_loss
 from .natural_validation import HELD_OUT, natural_validation_set
 from .sources import SourceIndex
 
@@ -59,6 +59,9 @@ class TrainConfig:
     lr: float = 5e-4
     """Peak Adam learning rate (after a linear warm-up); decays by a cosine to 2 % of it."""
     warmup_steps: int = 200
+    loss: str = "l1"
+    """``l1``: the paper's hierarchical L1; ``l2``: the same with squared errors, whose final term
+    is what PSNR measures (a last fine-tune of a trained model)."""
     seed: int = 0
     """Seed of the initial weights and of every batch (batches are a function of seed and step)."""
     data: list[str] = field(default_factory=list)
@@ -95,6 +98,8 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_ideal_share(self.ideal_share)
+        if self.loss not in NORMS:
+            raise ValueError(f"--loss {self.loss}: use one of {', '.join(NORMS)}")
 
 
 def selection_set(ideal_share: float, natural: bool) -> str:
@@ -247,7 +252,7 @@ def train(cfg: TrainConfig) -> dict:
             )
             with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
                 image, estimates = net(spikes)
-                loss = hierarchical_l1(image.float(), estimates.float(), truth)
+                loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
