@@ -136,7 +136,8 @@ SENSOR_NAMES = {"ideal": "ideal sensor", "real": "real-like sensor"}
 
 
 def class_table(results: dict) -> str:
-    """PSNR / SSIM per scene class, then per sensor."""
+    """PSNR / SSIM per scene class, then per sensor (a dash in results from before the
+    per-sensor scores, which ``--gpu-only`` may write into)."""
     names = [n for n in SCENE_CLASSES if n in results["cases"]["classes"]]
     sensors = [s for s in SENSOR_NAMES if s in results["cases"]["sensors"]]
     columns = ["method", "backend", *names, *(SENSOR_NAMES[s] for s in sensors)]
@@ -144,8 +145,9 @@ def class_table(results: dict) -> str:
     for row in results["rows"]:
         if "quality" in row:
             q = row["quality"]
-            scores = [q["classes"][n] for n in names] + [q["sensors"][s] for s in sensors]
-            cells = [f"{g['psnr']:.2f} / {g['ssim']:.3f}" for g in scores]
+            scores = [q["classes"][n] for n in names]
+            scores += [q.get("sensors", {}).get(s) for s in sensors]
+            cells = [f"{g['psnr']:.2f} / {g['ssim']:.3f}" if g else DASH for g in scores]
             lines.append(table_row([row["label"], row["backend"], *cells]))
     return "\n".join(lines) + "\n"
 
