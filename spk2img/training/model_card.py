@@ -75,9 +75,10 @@ def real_capture_niqe(onnx_path: Path, capture: Path) -> dict:
 
 
 def _niqe_at_centres(spikes: np.ndarray, net: OnnxModel, binning: int) -> dict:
-    """``{method: mean NIQE, "centers": [...]}`` over centres :data:`REAL_CAPTURE_STEP` apart
-    with a full window of the network with ``binning``."""
-    from spk2img.core.niqe import display_grey, niqe  # the eval extra
+    """``{method: mean NIQE, method_corners: mean NIQE over the four corner crops, "centers":
+    [...]}`` over centres :data:`REAL_CAPTURE_STEP` apart with a full window of the network
+    with ``binning``."""
+    from spk2img.core.niqe import display_grey, niqe, niqe_corners  # the eval extra
 
     half = net_window(binning) // 2
     centers = list(range(half, len(spikes) - half, REAL_CAPTURE_STEP))
@@ -87,10 +88,12 @@ def _niqe_at_centres(spikes: np.ndarray, net: OnnxModel, binning: int) -> dict:
         "TFI": tfi(spikes, centers, NET_WINDOW),
         "network": np.concatenate([net(w[None].astype(np.float32)) / binning for w in windows]),
     }
-    return {
-        name: float(np.mean([niqe(display_grey(f)) for f in stack]))
-        for name, stack in frames.items()
-    } | {"centers": centers}
+    scores = {}
+    for name, stack in frames.items():
+        grey = [display_grey(f) for f in stack]
+        scores[name] = float(np.mean([niqe(g) for g in grey]))
+        scores[f"{name}_corners"] = float(np.mean([niqe_corners(g) for g in grey]))
+    return scores | {"centers": centers}
 
 
 def _row(name: str, s: dict, classes: list[str]) -> str:
@@ -190,8 +193,11 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
             f"({niqe['binning']} frames merged into each of the network's 41, docs/binning.md), "
             f"at centres {niqe['centers_binned'][0]}, {niqe['centers_binned'][1]}, …, "
             f"{niqe['centers_binned'][-1]}: network **{niqe['network_binned']:.2f}**, TFP-41 "
-            f"{niqe['TFP-41_binned']:.2f}, TFI {niqe['TFI_binned']:.2f}. Pictures: "
-            "`python scripts/real_capture_quality.py CAPTURE --image OUT.png`.\n"
+            f"{niqe['TFP-41_binned']:.2f}, TFI {niqe['TFI_binned']:.2f}. These score the "
+            "top-left 192x192 of each frame, as scikit-video does; over the four corner crops, "
+            f"which see the whole frame: network {niqe['network_corners_binned']:.2f}, TFP-41 "
+            f"{niqe['TFP-41_corners_binned']:.2f}, TFI {niqe['TFI_corners_binned']:.2f}. "
+            "Pictures: `python scripts/real_capture_quality.py CAPTURE --image OUT.png`.\n"
         )
     body = "\n".join(sections)
     stem = onnx_path.stem
