@@ -35,19 +35,39 @@ def _records(run_dir, kind):
 
 
 @pytest.mark.parametrize(
-    ("norm", "expected"), [("l1", 0.1 + 0.02 * 20 * 0.5), ("l2", 0.01 + 0.02 * 20 * 0.25)]
+    ("final", "expected"), [("l1", 0.1 + 0.02 * 20 * 0.5), ("psnr", -20 + 0.02 * 20 * 0.5)]
 )
-def test_loss_is_the_final_error_plus_weighted_intermediate_terms(norm, expected):
+def test_loss_is_the_final_term_plus_weighted_intermediate_l1(final, expected):
+    """An error of 0.1 everywhere: L1 0.1, PSNR 20 dB (the 1e-6 floor moves it by 4e-4 dB)."""
     truth = torch.rand(2, 5, 8, 8)
     image = truth[:, 2:3] + 0.1
     estimates = truth.unsqueeze(2).expand(2, 5, 4, 8, 8) - 0.5
-    loss = hierarchical_loss(image, estimates, truth, norm)
-    assert loss.item() == pytest.approx(expected, rel=1e-5)
+    loss = hierarchical_loss(image, estimates, truth, final)
+    assert loss.item() == pytest.approx(expected, abs=1e-3)
+
+
+def test_the_psnr_term_weighs_each_window_by_its_own_error():
+    """Minus the mean PSNR: halving the error of a good window gains as much as halving that of
+    a bad one, where the squared error would barely see the good one."""
+    truth = torch.zeros(2, 5, 8, 8)
+    estimates = truth.unsqueeze(2).expand(2, 5, 4, 8, 8)
+    image = torch.tensor([0.01, 0.2]).view(2, 1, 1, 1).expand(2, 1, 8, 8)
+    better_good = image * torch.tensor([0.5, 1.0]).view(2, 1, 1, 1)
+    better_bad = image * torch.tensor([1.0, 0.5]).view(2, 1, 1, 1)
+    gains = [
+        (
+            hierarchical_loss(image, estimates, truth, "psnr")
+            - hierarchical_loss(i, estimates, truth, "psnr")
+        ).item()
+        for i in (better_good, better_bad)
+    ]
+    assert gains[0] == pytest.approx(gains[1], rel=0.01)
+    assert gains[0] == pytest.approx(10 * np.log10(4) / 2, rel=0.01)
 
 
 def test_an_unknown_loss_is_refused(tmp_path, capsys):
-    assert main(["train", "--run-dir", str(tmp_path / "run"), "--loss", "l3"]) == 2
-    assert "--loss l3: use one of l1, l2" in capsys.readouterr().err
+    assert main(["train", "--run-dir", str(tmp_path / "run"), "--loss", "l2"]) == 2
+    assert "--loss l2: use one of l1, psnr" in capsys.readouterr().err
 
 
 def test_batches_are_a_function_of_seed_and_step():

@@ -42,6 +42,8 @@ from .train import selection_words
 
 CLASSES = [f"psnr_{c}" for c in (*SENSORS, *MOTIONS, *BRIGHTNESS)]
 REAL_CAPTURE_STEP = 20  # frames between the scored centres of the real capture
+LOSS_NOTES = {"l1": "", "psnr": ", its final term minus the windows' mean PSNR (`--loss psnr`)"}
+"""What the card adds to the loss for each ``spk2img train --loss``."""
 
 
 def evaluate(onnx_path: Path, data: list[Path], per_class: int, size: tuple[int, int]) -> dict:
@@ -235,7 +237,7 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
   filmed by the ideal integrate-and-fire sensor, the others by the sensor fitted to a real PKU
   capture with jittered strengths. Sources and licences of every photo and clip:
   docs/training_data.md.
-- loss: hierarchical {loss.upper()} (λ = 0.02); Adam, peak lr {tc["lr"]}, warm-up
+- loss: hierarchical L1 (λ = 0.02){LOSS_NOTES[loss]}; Adam, peak lr {tc["lr"]}, warm-up
   {tc["warmup_steps"]} steps, cosine decay; batch {tc["batch_size"]}; seed {tc["seed"]}.
 - steps: **{state["step"]}** of {tc["steps"]} planned; **{state["wall_s"] / 3600:.2f} h** of
   optimiser steps on {state.get("hardware", f"{tc['threads']} CPU threads")}.

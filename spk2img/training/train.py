@@ -1,5 +1,6 @@
-"""Training Spk2ImgNet on simulated streams: hierarchical L1 (or L2), Adam, checkpoints with resume,
-JSONL metrics, periodic validation against TFP and TFI, and data parallelism under ``torchrun``.
+"""Training Spk2ImgNet on simulated streams: hierarchical L1 (or PSNR), Adam, checkpoints with
+resume, JSONL metrics, periodic validation against TFP and TFI, and data parallelism under
+``torchrun``.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
 
 from .data import Batches, DataMix, SampleMaker, check_ideal_share
-from .loss import NORMS, hierarchical_loss
+from .loss import FINAL_TERMS, hierarchical_loss
 from .natural_validation import HELD_OUT, natural_validation_set
 from .sources import SourceIndex
 
@@ -60,8 +61,8 @@ class TrainConfig:
     """Peak Adam learning rate (after a linear warm-up); decays by a cosine to 2 % of it."""
     warmup_steps: int = 200
     loss: str = "l1"
-    """``l1``: the paper's hierarchical L1; ``l2``: the same with squared errors, whose final term
-    is what PSNR measures (a last fine-tune of a trained model)."""
+    """The final image's term of the hierarchical loss: ``l1``, the paper's; ``psnr``, minus the
+    windows' mean PSNR, the validation's own measure (a last fine-tune of a trained model)."""
     seed: int = 0
     """Seed of the initial weights and of every batch (batches are a function of seed and step)."""
     data: list[str] = field(default_factory=list)
@@ -98,8 +99,8 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_ideal_share(self.ideal_share)
-        if self.loss not in NORMS:
-            raise ValueError(f"--loss {self.loss}: use one of {', '.join(NORMS)}")
+        if self.loss not in FINAL_TERMS:
+            raise ValueError(f"--loss {self.loss}: use one of {', '.join(FINAL_TERMS)}")
 
 
 def selection_set(ideal_share: float, natural: bool) -> str:
