@@ -42,7 +42,10 @@ from .train import selection_words
 
 CLASSES = [f"psnr_{c}" for c in (*SENSORS, *MOTIONS, *BRIGHTNESS)]
 REAL_CAPTURE_STEP = 20  # frames between the scored centres of the real capture
-LOSS_NOTES = {"l1": "", "psnr": ", its final term minus the windows' mean PSNR (`--loss psnr`)"}
+LOSS_NOTES = {
+    "l1": "",
+    "psnr": ", the final image's term replaced by minus the windows' mean PSNR (`--loss psnr`)",
+}
 """What the card adds to the loss for each ``spk2img train --loss``."""
 
 
