@@ -51,7 +51,7 @@ def test_the_psnr_term_weighs_each_window_by_its_own_error():
     a bad one, where the squared error would barely see the good one."""
     truth = torch.zeros(2, 5, 8, 8)
     estimates = truth.unsqueeze(2).expand(2, 5, 4, 8, 8)
-    image = torch.tensor([0.01, 0.2]).view(2, 1, 1, 1).expand(2, 1, 8, 8)
+    image = torch.tensor([0.05, 0.4]).view(2, 1, 1, 1).expand(2, 1, 8, 8)
     better_good = image * torch.tensor([0.5, 1.0]).view(2, 1, 1, 1)
     better_bad = image * torch.tensor([1.0, 0.5]).view(2, 1, 1, 1)
     gains = [
