@@ -98,18 +98,16 @@ def main() -> None:
     centers = list(range(half, len(spikes) - half, args.step))
     paths = {k: Path(v) for k, v in checkpoints.items()}
     frames = reconstructions(spikes, centers, paths, binning)
-    scores = {name: [niqe(display_grey(f)) for f in stack] for name, stack in frames.items()}
+    greys = {name: [display_grey(f) for f in stack] for name, stack in frames.items()}
+    scores = {name: [niqe(g) for g in stack] for name, stack in greys.items()}
     means = {name: float(np.mean(values)) for name, values in scores.items()}
     corners = {
-        name: float(np.mean([niqe_corners(display_grey(f)) for f in stack]))
-        for name, stack in frames.items()
+        name: float(np.mean([niqe_corners(g) for g in stack])) for name, stack in greys.items()
     }
     region = {}
     if args.region:
         part = parse_region(args.region)
-        region = {
-            name: [niqe(display_grey(f)[part]) for f in stack] for name, stack in frames.items()
-        }
+        region = {name: [niqe(g[part]) for g in stack] for name, stack in greys.items()}
     print(f"NIQE (lower is more natural; networks with binning {binning}), centres {centers}:")
     for name, value in means.items():
         inner = f"   region {np.mean(region[name]):.3f}" if region else ""

@@ -11,6 +11,14 @@ PSNR_FLOOR_MSE = 1e-6
 """Added to each window's squared error before the logarithm: PSNR saturates at 60 dB."""
 
 
+def check_final_term(final: str) -> str:
+    """``final`` if it is one of :data:`FINAL_TERMS` (``spk2img train --loss``), else
+    ``ValueError``."""
+    if final not in FINAL_TERMS:
+        raise ValueError(f"--loss {final}: use one of {', '.join(FINAL_TERMS)}")
+    return final
+
+
 def hierarchical_loss(
     image: torch.Tensor,
     estimates: torch.Tensor,
@@ -29,8 +37,7 @@ def hierarchical_loss(
         estimates: ``(b, blocks, subwindows, h, w)`` SALI's intermediate estimates.
         truth: ``(b, blocks, h, w)`` ground truth at the block centres; the middle one is ``I_k``.
     """
-    if final not in FINAL_TERMS:
-        raise ValueError(f"loss {final!r}: use one of {', '.join(FINAL_TERMS)}")
+    check_final_term(final)
     key = truth.shape[1] // 2
     difference = image[:, 0] - truth[:, key]
     if final == "l1":

@@ -36,7 +36,7 @@ from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
 
 from .data import Batches, DataMix, SampleMaker, check_ideal_share
-from .loss import FINAL_TERMS, hierarchical_loss
+from .loss import check_final_term, hierarchical_loss
 from .natural_validation import HELD_OUT, natural_validation_set
 from .sources import SourceIndex
 
@@ -99,8 +99,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         check_ideal_share(self.ideal_share)
-        if self.loss not in FINAL_TERMS:
-            raise ValueError(f"--loss {self.loss}: use one of {', '.join(FINAL_TERMS)}")
+        check_final_term(self.loss)
 
 
 def selection_set(ideal_share: float, natural: bool) -> str:
