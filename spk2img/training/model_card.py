@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.core.binning import suggest_binning
-from spk2img.core.classical import tfi, tfp
 from spk2img.core.evaluation import (
     BRIGHTNESS,
     MOTIONS,
@@ -30,8 +29,6 @@ from spk2img.core.evaluation import (
 )
 from spk2img.core.onnx_backend import OnnxModel, graph_metadata
 from spk2img.core.spikes import as_spike_array, read_spikes
-from spk2img.core.stream import net_input
-from spk2img.core.windows import NET_WINDOW, net_window
 from spk2img.export.metadata import trained_sensors
 from spk2img.model.checkpoint import load_checkpoint, stored_config
 from spk2img.model.complexity import count_macs, count_parameters
@@ -83,21 +80,18 @@ def _niqe_at_centres(spikes: np.ndarray, net: OnnxModel, binning: int) -> dict:
     """``{method: mean NIQE, method_corners: mean NIQE over the four corner crops, "centers":
     [...]}`` over centres :data:`REAL_CAPTURE_STEP` apart with a full window of the network
     with ``binning``."""
-    from spk2img.core.niqe import display_grey, niqe, niqe_corners  # the eval extra
+    from spk2img.core.capture_quality import (  # the eval extra
+        capture_centres,
+        niqe_scores,
+        reconstruct_at,
+    )
 
-    half = net_window(binning) // 2
-    centers = list(range(half, len(spikes) - half, REAL_CAPTURE_STEP))
-    windows = [net_input(spikes, k, binning) for k in centers]
-    frames = {
-        "TFP-41": tfp(spikes, centers, NET_WINDOW),
-        "TFI": tfi(spikes, centers, NET_WINDOW),
-        "network": np.concatenate([net(w[None].astype(np.float32)) / binning for w in windows]),
-    }
+    centers = capture_centres(len(spikes), binning, REAL_CAPTURE_STEP)
+    frames = reconstruct_at(spikes, centers, {"network": net}, binning)
     scores = {}
-    for name, stack in frames.items():
-        grey = [display_grey(f) for f in stack]
-        scores[name] = float(np.mean([niqe(g) for g in grey]))
-        scores[f"{name}_corners"] = float(np.mean([niqe_corners(g) for g in grey]))
+    for name, per_frame in niqe_scores(frames).items():
+        scores[name] = float(np.mean(per_frame["niqe"]))
+        scores[f"{name}_corners"] = float(np.mean(per_frame["corners"]))
     return scores | {"centers": centers}
 
 
