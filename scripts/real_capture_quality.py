@@ -24,15 +24,15 @@ import torch
 from PIL import Image, ImageDraw
 
 from spk2img.core.binning import suggest_binning
-from spk2img.core.capture_quality import capture_centres, niqe_scores, reconstruct_at
+from spk2img.core.capture_quality import Network, capture_centres, niqe_scores, reconstruct_at
 from spk2img.core.niqe import display_grey, niqe
 from spk2img.core.spikes import as_spike_array, read_spikes
 from spk2img.model.checkpoint import load_model
 from spk2img.model.predictor import DEFAULT_CHECKPOINT
 
 
-def torch_network(path: Path):
-    """A checkpoint as a :data:`~spk2img.core.capture_quality.Network`."""
+def torch_network(path: Path) -> Network:
+    """A PyTorch checkpoint as a :data:`~spk2img.core.capture_quality.Network`."""
     model = load_model(path)
 
     def run(window: np.ndarray) -> np.ndarray:
