@@ -11,12 +11,10 @@ PSNR_FLOOR_MSE = 1e-6
 """Added to each window's squared error before the logarithm: PSNR saturates at 60 dB."""
 
 
-def check_final_term(final: str) -> str:
-    """``final`` if it is one of :data:`FINAL_TERMS` (``spk2img train --loss``), else
-    ``ValueError``."""
+def check_final_term(final: str) -> None:
+    """``ValueError`` unless ``final`` is one of :data:`FINAL_TERMS` (``spk2img train --loss``)."""
     if final not in FINAL_TERMS:
         raise ValueError(f"--loss {final}: use one of {', '.join(FINAL_TERMS)}")
-    return final
 
 
 def hierarchical_loss(
