@@ -29,8 +29,8 @@ _.inter_op_num_threads
 _.writeable  # numpy's ndarray.flags
 
 # public API that only the tests use inside this repository
-_.write_spikes  # spk2img.core.spikes: writes a stream as .dat, .npy or .npz
-_.codes_held  # spk2img.core.block_stream.BlockReuseStream: what a stream holds
+_.write_spikes  # spk2img.io.spikes: writes a stream as .dat, .npy or .npz
+_.codes_held  # spk2img.runtime.block_stream.BlockReuseStream: what a stream holds
 
 # called from a shell script
 _.release_checkpoint  # spk2img/model/checkpoint.py: called by scripts/ship_model.sh
@@ -44,8 +44,8 @@ _.eof_received  # asyncio.Protocol: the client shut down its write side (half-cl
 _.keep_alive  # uvicorn's RequestResponseCycle: close the connection after the response
 
 # used by scripts/real_capture_quality.py (scripts are not scanned) and the tests
-_.niqe  # spk2img.core.niqe
-_.display_grey  # spk2img.core.niqe
+_.niqe  # spk2img.evaluation.niqe
+_.display_grey  # spk2img.evaluation.niqe
 
 # FastAPI routes of the viewer (spk2img/service/routers/viewer.py), registered by their decorators
 _.page

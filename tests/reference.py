@@ -29,7 +29,7 @@ def tfp_reference(frames: np.ndarray, k: int, window: int) -> np.ndarray:
 
 
 def tfi_reference(frames: np.ndarray, k: int) -> np.ndarray:
-    """TFI with the edge rule documented in spk2img.core.stream.TFIStream."""
+    """TFI with the edge rule documented in spk2img.runtime.stream.TFIStream."""
     t, h, w = frames.shape
     out = np.zeros((h, w))
     for y in range(h):

@@ -18,8 +18,8 @@ import h11
 import httpx
 import numpy as np
 
-from spk2img.core.framing import DoneRecord, ErrorRecord, FrameRecord, RecordParser
-from spk2img.core.spikes import pack_frames
+from spk2img.io.spikes import pack_frames
+from spk2img.protocol.framing import DoneRecord, ErrorRecord, FrameRecord, RecordParser
 
 START_SECONDS = 60
 OCTET = {"content-type": "application/octet-stream"}
@@ -45,16 +45,21 @@ class Server:
 
 @contextmanager
 def run_server(
-    model: Path, *flags: str, program: Sequence[str] = (sys.executable, "-m", "spk2img")
+    model: Path,
+    *flags: str,
+    program: Sequence[str] = (sys.executable, "-m", "spk2img"),
+    env: dict[str, str] | None = None,
+    cwd: Path | None = None,
 ) -> Iterator[Server]:
-    """Run ``PROGRAM serve --model MODEL FLAGS…`` on a free port; wait until ``/readyz`` is 200.
+    """Run ``PROGRAM serve --model MODEL FLAGS…`` on a free port (in environment ``env`` and
+    folder ``cwd``, default this process's); wait until ``/readyz`` is 200.
 
     The default program is ``spk2img serve`` (``python -m spk2img``)."""
     port = free_port()
     cmd = [*program, "serve", "--model", str(model), "--port", str(port)]
     cmd += ["--log-level", "warning", *flags]
     with tempfile.TemporaryFile() as log:  # a file, not a pipe: a full pipe would block it
-        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=cwd)
         server = Server(f"http://127.0.0.1:{port}", port, process)
         try:
             _wait_ready(server, log)

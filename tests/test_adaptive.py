@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from spk2img.cli import main
-from spk2img.core.adaptive import (
+from spk2img.runtime.adaptive import (
     DIM_COUNT,
     MOTION_THRESHOLD,
     TILE,
@@ -14,9 +14,8 @@ from spk2img.core.adaptive import (
     network_tiles,
     tile_statistics,
 )
-from spk2img.core.scenes import random_scene
-from spk2img.core.simulator import SensorConfig, simulate
-from spk2img.core.windows import NET_WINDOW
+from spk2img.sim.scenes import random_scene
+from spk2img.sim.simulator import SensorConfig, simulate
 
 SENSORS = {"ideal": SensorConfig.ideal(), "real": SensorConfig.real()}
 
@@ -24,7 +23,7 @@ SENSORS = {"ideal": SensorConfig.ideal(), "real": SensorConfig.real()}
 def _window(motion: str, brightness: str, sensor: str, seed: int, size=(64, 96)) -> np.ndarray:
     rng = np.random.default_rng([31337, seed])
     scene = random_scene(rng, *size, motion, brightness)
-    return simulate(scene, NET_WINDOW, SENSORS[sensor], rng)
+    return simulate(scene, 41, SENSORS[sensor], rng)
 
 
 def _change(window: np.ndarray) -> np.ndarray:

@@ -12,8 +12,8 @@ import pytest
 
 import spk2img
 from spk2img.cli import main
-from spk2img.core.errors import InputError
-from spk2img.core.onnx_backend import default_model_path
+from spk2img.errors import InputError
+from spk2img.runtime.onnx_backend import default_model_path
 
 H, W = 24, 32
 

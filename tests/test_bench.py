@@ -13,16 +13,17 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from spk2img.bench.cases import CENTER, SCENE_CLASSES, benchmark_set
+from spk2img.bench.cases import SCENE_CLASSES, benchmark_set
 from spk2img.bench.natural import natural_set
 from spk2img.bench.rows import BACKENDS, NetRow, TfiRow, TfpRow, row_from_json, row_to_json
 from spk2img.bench.runner import QUICK
 from spk2img.bench.scores import TFP_WINDOWS, best_tfp_window, quality
 from spk2img.bench.worker import peak_rss_mib
 from spk2img.cli import main
-from spk2img.core.classical import tfp
-from spk2img.core.evaluation import score_images
-from spk2img.core.metrics import psnr
+from spk2img.evaluation.metrics import psnr
+from spk2img.evaluation.scoring import score_images
+from spk2img.runtime.classical import tfp
+from spk2img.sim.simulator import CENTER_FRAME
 
 
 @pytest.fixture(scope="module")
@@ -96,7 +97,7 @@ def test_quick_natural_validation(quick_run, held_out_dir):
     assert (natural["height"], natural["width"]) == QUICK.natural_size
     scenes = natural_set([held_out_dir], *QUICK.natural_size).scenes
     tfp41 = next(r for r in results["rows"] if r["label"].startswith("TFP-41"))
-    expected = score_images([tfp(s.spikes, [CENTER], 41)[0] for s in scenes], scenes)
+    expected = score_images([tfp(s.spikes, [CENTER_FRAME], 41)[0] for s in scenes], scenes)
     assert tfp41["natural"] == pytest.approx(expected)
     for row in results["rows"]:
         if row["error"] is None and row["scored"]:

@@ -1,5 +1,5 @@
 """Binning for dim streams: K stream frames merged into each of the network's 41 frames
-(spk2img.core.stream.bin_frames, NetStream, suggest_binning), through the API and the CLI; and
+(spk2img.runtime.stream.bin_frames, NetStream, suggest_binning), through the API and the CLI; and
 the shipped model with it on a dim simulated scene against ground truth."""
 
 from __future__ import annotations
@@ -12,14 +12,14 @@ from reference import tfp_reference
 
 import spk2img
 from spk2img.cli import main
-from spk2img.core.binning import suggest_binning
-from spk2img.core.errors import InputError
-from spk2img.core.methods import build_reconstructor, method_plan
-from spk2img.core.metrics import psnr
-from spk2img.core.scenes import StillScene, dead_leaves
-from spk2img.core.simulator import SensorConfig, simulate
-from spk2img.core.stream import NetStream, bin_frames, collect, frame_chunks, run_stream
-from spk2img.core.windows import MAX_BINNING, WindowError, net_window
+from spk2img.errors import InputError
+from spk2img.evaluation.metrics import psnr
+from spk2img.runtime.binning import suggest_binning
+from spk2img.runtime.methods import build_reconstructor, method_plan
+from spk2img.runtime.stream import NetStream, bin_frames, collect, frame_chunks, run_stream
+from spk2img.runtime.windows import MAX_BINNING, WindowError, net_window
+from spk2img.sim.scenes import StillScene, dead_leaves
+from spk2img.sim.simulator import SensorConfig, simulate
 
 H, W = 12, 16
 
@@ -37,7 +37,7 @@ def bernoulli(frames: int, rate: float | np.ndarray, seed: int = 0) -> np.ndarra
 @settings(max_examples=40, deadline=None)
 @given(binning=st.integers(1, 6), seed=st.integers(0, 2**31 - 1))
 def test_a_binned_frame_is_the_union_of_its_stream_frames(binning, seed):
-    window = bernoulli(net_window(binning), 0.2, seed)
+    window = bernoulli(net_window(41, binning), 0.2, seed)
     merged = bin_frames(window, binning)
     assert merged.shape == (41, H, W)
     for j in range(41):
@@ -47,7 +47,7 @@ def test_a_binned_frame_is_the_union_of_its_stream_frames(binning, seed):
 
 @pytest.mark.parametrize("binning", [1, 2, 3, 4])
 def test_window_length_stays_odd_and_centred(binning):
-    window = net_window(binning)
+    window = net_window(41, binning)
     assert window % 2 == 1 and window - 41 * binning in (0, 1)
     plan = method_plan("net", None, 5, binning=binning)
     assert plan.window == window and plan.half == window // 2
@@ -60,7 +60,7 @@ def test_net_stream_runs_the_network_on_merged_windows(binning):
     recon = build_reconstructor("net", H, W, plan, tfp41, max_batch=2, binning=binning)
     assert isinstance(recon, NetStream)
     frames, centers = collect(run_stream(recon, frame_chunks(spikes, 9)), H, W)
-    half = net_window(binning) // 2
+    half = net_window(41, binning) // 2
     assert centers.tolist() == list(range(half, 400 - half, 17))
     for k, image in zip(centers, frames, strict=True):
         window = spikes[k - half : k + half + 1]
@@ -76,7 +76,7 @@ def test_binning_is_refused_where_it_does_not_apply():
         method_plan("tfp", None, 7, binning=2)
     for bad in (0, MAX_BINNING + 1, 1.5):
         with pytest.raises(WindowError, match="binning"):
-            net_window(bad)
+            net_window(41, bad)
     with pytest.raises(WindowError, match="83-frame window"):
         method_plan("net", "40", None, binning=2).centers_for(100)
 

@@ -9,16 +9,16 @@ from hypothesis import strategies as st
 from service_support import run_server
 
 from spk2img.cli import main
-from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths
-from spk2img.core.block_stream import BlockReuseStream, reuses_blocks
-from spk2img.core.errors import InputError
-from spk2img.core.methods import build_reconstructor, method_plan
-from spk2img.core.onnx_backend import OnnxModel, default_model_path
-from spk2img.core.scenes import random_scene
-from spk2img.core.simulator import SensorConfig, simulate
-from spk2img.core.stream import NetStream, collect, frame_chunks, run_stream
-from spk2img.core.windows import CenterPlan
-from spk2img.model.predictor import TorchPredictor
+from spk2img.errors import InputError
+from spk2img.runtime.block_codec import OnnxBlockCodec, block_graph_paths
+from spk2img.runtime.block_stream import BlockReuseStream, reuses_blocks
+from spk2img.runtime.methods import build_reconstructor, method_plan
+from spk2img.runtime.onnx_backend import OnnxModel, default_model_path
+from spk2img.runtime.stream import NetStream, collect, frame_chunks, run_stream
+from spk2img.runtime.torch_backend import TorchPredictor
+from spk2img.runtime.windows import CenterPlan
+from spk2img.sim.scenes import random_scene
+from spk2img.sim.simulator import SensorConfig, simulate
 
 HEIGHT, WIDTH = 26, 35  # not multiples of the pyramid's 2: the padding is exercised
 

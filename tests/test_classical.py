@@ -5,9 +5,9 @@ from hypothesis import strategies as st
 from reference import encode_dat, tfi_reference, tfp_reference
 
 from spk2img.cli import main
-from spk2img.core.classical import tfi, tfp
-from spk2img.core.stream import TFIStream, TFPStream, collect
-from spk2img.core.windows import CenterPlan, WindowError
+from spk2img.runtime.classical import tfi, tfp
+from spk2img.runtime.stream import TFIStream, TFPStream, collect
+from spk2img.runtime.windows import CenterPlan, WindowError
 
 
 def _stream(t=120, h=13, w=21, seed=0):

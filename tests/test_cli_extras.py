@@ -1,7 +1,7 @@
 import pytest
 
 from spk2img.cli.extras import MissingExtra, needs_extra
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 
 def test_missing_extra_becomes_a_one_line_input_error():

@@ -13,9 +13,7 @@ from onnx_models import EXPORT_EXAMPLE_SIZE, TINY_TRAIN_COMMIT
 
 from spk2img import __version__
 from spk2img.cli import main
-from spk2img.core.block_model import block_graph_paths
-from spk2img.core.errors import InputError
-from spk2img.core.onnx_backend import OnnxModel
+from spk2img.errors import InputError
 from spk2img.export import hard_cases
 from spk2img.export.block_graphs import block_parity
 from spk2img.export.metadata import weights_sha256
@@ -24,6 +22,7 @@ from spk2img.export.onnx_export import (
     check_graph,
     checkpoint_source,
     export_onnx,
+    one_shot_io,
     operator_counts,
     random_source,
 )
@@ -31,7 +30,9 @@ from spk2img.export.pipeline import export_verified
 from spk2img.export.quantize import MIN_PSNR_VS_FP32, precision_report, reduce_precision
 from spk2img.export.verify import ATOL, reference_model, verify_onnx
 from spk2img.model.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
-from spk2img.model.predictor import TorchPredictor
+from spk2img.runtime.block_codec import block_graph_paths
+from spk2img.runtime.onnx_backend import OnnxModel
+from spk2img.runtime.torch_backend import TorchPredictor
 
 torch.set_num_threads(1)
 EXAMPLE = ExportConfig(example_height=EXPORT_EXAMPLE_SIZE, example_width=EXPORT_EXAMPLE_SIZE)
@@ -44,7 +45,9 @@ def _windows(seed: int, batch: int, height: int, width: int) -> np.ndarray:
 
 def test_graph_contract(tiny_export):
     model = onnx.load(tiny_export)
-    check_graph(model)  # checker (full), standard domains, I/O names and dynamic dims
+    check_graph(
+        model, one_shot_io(41)
+    )  # checker (full), standard domains, I/O names and dynamic dims
     ops = operator_counts(model)
     assert {domain for domain, _ in ops} == {""}
     assert ops[("", "GridSample")] == 3 and ("", "DeformConv") not in ops

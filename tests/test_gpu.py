@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from spk2img.cli import main
-from spk2img.core import onnx_backend
-from spk2img.core.block_model import OnnxBlockCodec
-from spk2img.core.errors import InputError
-from spk2img.core.onnx_backend import (
+from spk2img.errors import InputError
+from spk2img.runtime import onnx_backend
+from spk2img.runtime.block_codec import OnnxBlockCodec
+from spk2img.runtime.onnx_backend import (
     DeviceError,
     OnnxModel,
     create_session,

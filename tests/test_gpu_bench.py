@@ -13,10 +13,10 @@ from spk2img.bench import gpu
 from spk2img.bench.report import gpu_table, markdown
 from spk2img.bench.worker import measure_gpu
 from spk2img.cli import main
-from spk2img.core.block_model import OnnxBlockCodec
-from spk2img.core.onnx_backend import OnnxModel, available_providers, default_model_path
 from spk2img.export.quantize import graph_io, reduce_block_graphs, reduce_precision
 from spk2img.export.verify import case_passes
+from spk2img.runtime.block_codec import OnnxBlockCodec
+from spk2img.runtime.onnx_backend import OnnxModel, available_providers, default_model_path
 
 HAS_CUDA = "CUDAExecutionProvider" in available_providers()
 

@@ -9,8 +9,8 @@ import warnings
 import pytest
 from fastapi.testclient import TestClient
 
-from spk2img.core import onnx_backend
-from spk2img.core.onnx_backend import DeviceError
+from spk2img.runtime import onnx_backend
+from spk2img.runtime.onnx_backend import DeviceError
 from spk2img.service.app import create_app
 from spk2img.service.settings import ServiceSettings
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from spk2img.core.metrics import psnr, ssim
+from spk2img.evaluation.metrics import psnr, ssim
 
 
 def _ssim_direct(x, y):

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from spk2img.cli import main
-from spk2img.core import onnx_backend
-from spk2img.core.errors import InputError
-from spk2img.core.light import SPIKE_RATE
-from spk2img.core.onnx_backend import model_path, shipped_models
+from spk2img.errors import InputError
 from spk2img.export.metadata import trained_sensors
+from spk2img.io.light import SPIKE_RATE
+from spk2img.runtime import onnx_backend
+from spk2img.runtime.onnx_backend import model_path, shipped_models
 from spk2img.service.settings import ServiceSettings
 
 

@@ -10,9 +10,9 @@ import pytest
 from PIL import Image
 
 from spk2img.cli import main
-from spk2img.core.metrics import psnr
-from spk2img.core.scenes import PROCEDURAL_KINDS
-from spk2img.core.simulator import GT_FRAMES, ground_truth
+from spk2img.evaluation.metrics import psnr
+from spk2img.sim.scenes import PROCEDURAL_KINDS
+from spk2img.sim.simulator import GT_FRAMES, ground_truth
 from spk2img.training.data import DataMix, SampleMaker
 from spk2img.training.natural_scenes import (
     CLIP_MARGIN,

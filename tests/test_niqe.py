@@ -1,9 +1,10 @@
-"""NIQE (spk2img.core.niqe): the distribution fit, and noise makes a photograph less natural."""
+"""NIQE (spk2img.evaluation.niqe): the distribution fit, and noise makes a photograph less
+natural."""
 
 import numpy as np
 import pytest
 
-from spk2img.core.niqe import aggd_fit, display_grey, niqe, niqe_corners
+from spk2img.evaluation.niqe import aggd_fit, display_grey, niqe, niqe_corners
 
 pytest.importorskip("scipy")
 

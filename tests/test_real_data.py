@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spk2img.core.classical import tfp
-from spk2img.core.metrics import psnr
-from spk2img.core.onnx_backend import OnnxModel
+from spk2img.evaluation.metrics import psnr
+from spk2img.runtime.classical import tfp
+from spk2img.runtime.onnx_backend import OnnxModel
 
 CAPTURE = Path(__file__).resolve().parents[2] / "shared/data/real/uhsr_helicopter_250x250.npz"
 

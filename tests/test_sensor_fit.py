@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from spk2img.cli import main
-from spk2img.core.scenes import StillScene
-from spk2img.core.sensor_fit import FITTED_PRESET, fit_sensor, load_preset
-from spk2img.core.simulator import SensorConfig, SpikeSimulator
+from spk2img.sim.scenes import StillScene
+from spk2img.sim.sensor_fit import FITTED_PRESET, fit_sensor, load_preset
+from spk2img.sim.simulator import SensorConfig, SpikeSimulator
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "real"
 REAL_CAPTURE = REAL / "uhsr_helicopter_250x250.npz"

@@ -12,11 +12,11 @@ from onnx_models import TFP_MODEL_METADATA
 from reference import tfp_reference
 from service_support import OCTET, DuplexClient, parse_frames, stream_bytes
 
-from spk2img.core.framing import MEDIA_TYPE, ErrorRecord
-from spk2img.core.light import to_display
-from spk2img.core.methods import build_reconstructor, method_plan
-from spk2img.core.onnx_backend import OnnxModel
-from spk2img.core.stream import collect, frame_chunks, run_stream
+from spk2img.io.light import to_display
+from spk2img.protocol.framing import MEDIA_TYPE, ErrorRecord
+from spk2img.runtime.methods import build_reconstructor, method_plan
+from spk2img.runtime.onnx_backend import OnnxModel
+from spk2img.runtime.stream import collect, frame_chunks, run_stream
 
 H, W, T = 16, 24, 100
 SPIKES, BODY = stream_bytes(T, H, W, seed=1)

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from service_support import OCTET, DuplexClient, parse_frames, post_chunks, stream_bytes
 
-from spk2img.core.framing import DoneRecord, ErrorRecord, FrameRecord, RecordParser
+from spk2img.protocol.framing import DoneRecord, ErrorRecord, FrameRecord, RecordParser
 
 
 def test_first_frame_arrives_before_the_upload_ends(service):

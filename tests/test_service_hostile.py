@@ -22,7 +22,7 @@ from service_support import (
     stream_bytes,
 )
 
-from spk2img.core.framing import DoneRecord, ErrorRecord
+from spk2img.protocol.framing import DoneRecord, ErrorRecord
 from spk2img.service.metrics import OTHER, ServiceMetrics
 
 READ_TIMEOUT = 1.0
@@ -36,6 +36,7 @@ class SlowModel:
         self.model, self.delay = model, delay
         self.calls = 0
         self.path, self.metadata, self.input_name = model.path, model.metadata, model.input_name
+        self.geometry = model.geometry
 
     def __call__(self, windows):
         time.sleep(self.delay)
@@ -217,8 +218,9 @@ def test_a_disconnect_cancels_the_job_within_one_model_call(guarded):
     resets the connection once 5 windows are done; the job stops within a model call or two,
     its slot frees and the admitted gauge drops."""
     _wait_for(lambda: _idle(guarded))
-    model = guarded.state.model
-    slow = guarded.state.model = SlowModel(model, 0.02)
+    network = guarded.state.network
+    model = network.predict
+    slow = network.predict = SlowModel(model, 0.02)
     try:
         _, body = stream_bytes(400, H, W, seed=9)
         client = DuplexClient(guarded.port)
@@ -232,7 +234,7 @@ def test_a_disconnect_cancels_the_job_within_one_model_call(guarded):
         freed = _wait_for(lambda: _idle(guarded), 2)
         after = slow.calls - calls_at_reset
     finally:
-        guarded.state.model = model
+        network.predict = model
     text = guarded.get("/metrics").text
     assert after <= 3 and freed < 0.2, (after, freed)
     assert metric_value(text, "spk2img_admitted_requests") == 0

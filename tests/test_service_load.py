@@ -12,7 +12,7 @@ import psutil
 import pytest
 from service_support import OCTET, DuplexClient, parse_frames, run_server, stream_bytes
 
-from spk2img.core.framing import DoneRecord
+from spk2img.protocol.framing import DoneRecord
 
 CLIENTS, REQUESTS, WARM_UP = 8, 200, 40
 H, W, T = 32, 32, 61

@@ -15,8 +15,10 @@ from service_support import OCTET, stream_bytes
 
 from spk2img.cli import build_parser, main
 from spk2img.cli.serve import flag_name, settings_from_args
-from spk2img.core.errors import InputError
-from spk2img.core.methods import method_plan
+from spk2img.errors import InputError
+from spk2img.model.config import PUBLISHED_GEOMETRY
+from spk2img.runtime.loader import LoadedNetwork
+from spk2img.runtime.methods import method_plan
 from spk2img.service.app import create_app
 from spk2img.service.inference import InferencePool
 from spk2img.service.reconstruction import Cancelled, StreamJob
@@ -143,7 +145,8 @@ _, BODY = stream_bytes(60, H, W, seed=11)
 def _job(method: str, **query) -> StreamJob:
     q = ReconstructQuery(height=H, width=W, method=method, **query)
     plan = method_plan(q.method, q.centers, q.stride, q.window)
-    return StreamJob(q, plan, ServiceSettings(), lambda w: w.mean(axis=1) / 0.6)
+    tfp41 = LoadedNetwork(lambda w: w.mean(axis=1) / 0.6, PUBLISHED_GEOMETRY)
+    return StreamJob(q, plan, ServiceSettings(), tfp41)
 
 
 @settings(max_examples=60, deadline=None)

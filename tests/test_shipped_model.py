@@ -9,10 +9,15 @@ import numpy as np
 from service_support import run_server
 
 from spk2img.cli import main
-from spk2img.core.onnx_backend import OnnxModel, default_model_path, graph_metadata, shipped_models
 from spk2img.export.metadata import weights_sha256
 from spk2img.model.checkpoint import load_checkpoint
-from spk2img.model.predictor import DEFAULT_CHECKPOINT
+from spk2img.runtime.onnx_backend import (
+    OnnxModel,
+    default_model_path,
+    graph_metadata,
+    shipped_models,
+)
+from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
 
 SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fast_motion_250x400.dat"
 CENTERS = "20,60,99"

@@ -10,8 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from spk2img.cli import main
-from spk2img.core.light import SPIKE_RATE
-from spk2img.core.scenes import (
+from spk2img.io.light import SPIKE_RATE
+from spk2img.io.spikes import frame_nbytes, unpack_frames
+from spk2img.sim.scenes import (
     BRIGHTNESSES,
     MEAN_RANGES,
     MOTIONS,
@@ -21,7 +22,7 @@ from spk2img.core.scenes import (
     random_scene,
     sample_bilinear,
 )
-from spk2img.core.simulator import (
+from spk2img.sim.simulator import (
     GT_FRAMES,
     SensorConfig,
     SpikeSimulator,
@@ -30,7 +31,6 @@ from spk2img.core.simulator import (
     simulate,
     training_sample,
 )
-from spk2img.core.spikes import frame_nbytes, unpack_frames
 
 # --- integrate-and-fire: the rate is 0.6·I ----------------------------------------------------
 

@@ -4,7 +4,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from reference import encode_dat
 
-from spk2img.core.spikes import (
+from spk2img.io.spikes import (
     DatStream,
     SpikeDecoder,
     SpikeFormatError,

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from spk2img.cli import main
-from spk2img.core.errors import InputError
-from spk2img.core.simulator import SensorConfig
+from spk2img.errors import InputError
 from spk2img.model.checkpoint import load_checkpoint, load_model, save_checkpoint
+from spk2img.sim.simulator import SensorConfig
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_loss
 from spk2img.training.train import TrainConfig, learning_rate, train

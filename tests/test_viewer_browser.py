@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 from service_support import OCTET, parse_frames, stream_bytes
 
-from spk2img.core.framing import MEDIA_TYPE, encode_error, encode_frame
+from spk2img.protocol.framing import MEDIA_TYPE, encode_error, encode_frame
 
 CHROMIUM = Path("/usr/bin/chromium")
 H, W, T = 32, 48, 200

@@ -10,10 +10,10 @@ from pathlib import Path
 import httpx
 import pytest
 
-from spk2img.core.adaptive import QUALITIES
-from spk2img.core.errors import InputError
-from spk2img.core.methods import METHODS, method_window
-from spk2img.core.windows import MAX_BINNING
+from spk2img.errors import InputError
+from spk2img.runtime.adaptive import QUALITIES
+from spk2img.runtime.methods import METHODS, method_window
+from spk2img.runtime.windows import MAX_BINNING
 from spk2img.service.routers.viewer import STATIC_DIR
 from spk2img.service.schemas import ReconstructQuery
 

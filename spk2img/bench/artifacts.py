@@ -63,8 +63,8 @@ def random_member(member: str, directory: Path) -> Weights:
 
 def shipped() -> Weights | None:
     """The shipped default model, if this installation has both of its files."""
-    from spk2img.core.onnx_backend import default_model_path
-    from spk2img.model.predictor import DEFAULT_CHECKPOINT
+    from spk2img.runtime.onnx_backend import default_model_path
+    from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
 
     onnx = default_model_path()
     if not (onnx.is_file() and DEFAULT_CHECKPOINT.is_file()):

@@ -14,9 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.scenes import random_scene
-from spk2img.core.simulator import SensorConfig, ground_truth, simulate
-from spk2img.core.windows import NET_WINDOW
+from spk2img.sim.scenes import random_scene
+from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, SensorConfig, ground_truth, simulate
 
 BENCH_SEED = 2_718_281_828
 SCENE_CLASSES: dict[str, tuple[str, str]] = {
@@ -26,17 +25,15 @@ SCENE_CLASSES: dict[str, tuple[str, str]] = {
     "dim": ("slow", "dim"),
     "bright": ("slow", "bright"),
 }
-"""Scene class -> (motion, brightness) of :func:`~spk2img.core.scenes.random_scene`."""
+"""Scene class -> (motion, brightness) of :func:`~spk2img.sim.scenes.random_scene`."""
 SENSORS = {"ideal": SensorConfig.ideal(), "real": SensorConfig.real()}
-CENTER = NET_WINDOW // 2
-"""The reconstructed frame: the centre of each 41-frame window."""
 
 
 @dataclass(frozen=True)
 class BenchSet:
     """``spikes (N, 41, H, W) uint8`` 0/1 windows and ``truth (N, H, W) float32`` linear
-    intensity at frame :data:`CENTER`; ``classes`` and ``sensors`` name each window's scene
-    class and sensor."""
+    intensity at frame :data:`~spk2img.sim.simulator.CENTER_FRAME`; ``classes`` and
+    ``sensors`` name each window's scene class and sensor."""
 
     spikes: np.ndarray
     truth: np.ndarray
@@ -73,8 +70,8 @@ def benchmark_set(per_class: int, height: int, width: int) -> BenchSet:
             sensor = "ideal" if j % 2 == 0 else "real"
             rng = np.random.default_rng([BENCH_SEED, i, j])
             scene = random_scene(rng, height, width, motion, brightness)
-            spikes.append(simulate(scene, NET_WINDOW, SENSORS[sensor], rng))
-            truth.append(ground_truth(scene, [CENTER])[0])
+            spikes.append(simulate(scene, FILM_FRAMES, SENSORS[sensor], rng))
+            truth.append(ground_truth(scene, [CENTER_FRAME])[0])
             classes.append(name)
             sensors.append(sensor)
     return BenchSet(np.stack(spikes), np.stack(truth), classes, sensors)

@@ -69,9 +69,9 @@ def gpu_device(requested: str, model: Path) -> tuple[str | None, str]:
 
     ``cpu``: none (the GPU rows are skipped). ``auto``: ``cuda`` when a CUDA session of
     ``model`` starts here, else none. ``cuda``/``tensorrt``: that device, or
-    :class:`~spk2img.core.onnx_backend.DeviceError` (the command stops at once, exit 2).
+    :class:`~spk2img.runtime.onnx_backend.DeviceError` (the command stops at once, exit 2).
     """
-    from spk2img.core.onnx_backend import DeviceError, create_session
+    from spk2img.runtime.onnx_backend import DeviceError, create_session
 
     if requested == "cpu":
         return None, "not measured (--device cpu)"

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.errors import InputError
-from spk2img.core.evaluation import ValidationScene, baseline_scores
+from spk2img.errors import InputError
+from spk2img.evaluation.scoring import ValidationScene, baseline_scores
 from spk2img.training.natural_validation import (
     HELD_OUT_CLIPS,
     HELD_OUT_PHOTOS,

@@ -11,7 +11,7 @@ could not run). A row has ``label``, ``kind``, ``backend``, ``weights``,
 ``classes``, ``sensors``) when scored and ``max_abs_error`` for networks. With ``--data``,
 ``natural`` describes the natural validation
 (:meth:`~spk2img.bench.natural.NaturalSet.describe`) and each scored row has ``natural``
-(:func:`~spk2img.core.evaluation.score_images`: ``psnr_ideal``, ``psnr_fitted``,
+(:func:`~spk2img.evaluation.scoring.score_images`: ``psnr_ideal``, ``psnr_fitted``,
 ``ssim_ideal``, ``ssim_fitted`` …); without it ``natural`` is ``None``.
 """
 

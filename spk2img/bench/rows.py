@@ -14,10 +14,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from .cases import CENTER
+from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES
 
 Reconstruct = Callable[[np.ndarray], np.ndarray]
-"""``(41, H, W) uint8`` 0/1 window -> ``(H, W) float32`` linear intensity at its centre frame."""
+"""``(FILM_FRAMES, H, W) uint8`` 0/1 window (41 frames) -> ``(H, W) float32`` linear intensity
+at its centre frame; a network reads the centred crop of its own window."""
 
 BACKENDS = {
     "torch": "PyTorch eager, fp32 (the reference)",
@@ -34,8 +35,8 @@ class TfpRow:
     """TFP (docs/format.md): the mean of ``window`` frames around the centre, divided by 0.6."""
 
     kind: ClassVar[str] = "tfp"
-    window: int = 41
-    """Frames averaged (odd, at most 41)."""
+    window: int = FILM_FRAMES
+    """Frames averaged (odd, at most the simulated window's 41)."""
     note: str = ""
     """Why this window (shown after the label)."""
 
@@ -48,9 +49,9 @@ class TfpRow:
         return "numpy"
 
     def build(self, threads: int) -> Reconstruct:
-        from spk2img.core.classical import tfp
+        from spk2img.runtime.classical import tfp
 
-        return lambda spikes: tfp(spikes, [CENTER], self.window)[0]
+        return lambda spikes: tfp(spikes, [CENTER_FRAME], self.window)[0]
 
 
 @dataclass(frozen=True)
@@ -68,9 +69,9 @@ class TfiRow:
         return "numpy"
 
     def build(self, threads: int) -> Reconstruct:
-        from spk2img.core.classical import tfi
+        from spk2img.runtime.classical import tfi
 
-        return lambda spikes: tfi(spikes, [CENTER])[0]
+        return lambda spikes: tfi(spikes, [CENTER_FRAME])[0]
 
 
 @dataclass(frozen=True)
@@ -92,15 +93,20 @@ class NetRow:
         return f"Spk2ImgNet {self.weights}" + ("" if self.trained else " (untrained)")
 
     def build(self, threads: int) -> Reconstruct:
-        if self.backend == "torch":
-            from spk2img.model.predictor import TorchPredictor
+        from spk2img.evaluation.scoring import network_scorer
+        from spk2img.runtime.loader import load_network
 
-            predict = TorchPredictor(self.path, threads=threads)
-        else:
-            from spk2img.core.onnx_backend import OnnxModel
-
-            predict = OnnxModel(self.path, threads=threads)
-        return lambda spikes: predict(spikes[None].astype(np.float32))[0]
+        torch = self.backend == "torch"
+        network = load_network(
+            None if torch else self.path,
+            backend="torch" if torch else "onnx",
+            checkpoint=self.path if torch else None,
+            threads=threads,
+            block_reuse=False,
+            warm_up=False,  # the bench's own warm-up calls are timed apart
+        )
+        score = network_scorer(network.predict)
+        return lambda spikes: score(spikes, None)
 
 
 Row = TfpRow | TfiRow | NetRow

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.evaluation import score_images
+from spk2img.evaluation.scoring import score_images
 
 from . import artifacts, gpu
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
@@ -214,7 +214,7 @@ def run_gpu_only(options: BenchOptions, log: Log) -> dict:
 def gpu_decision(options: BenchOptions, log: Log) -> tuple[str | None, str]:
     """The GPU rows' device, or ``None`` and why they are not measured
     (:func:`~spk2img.bench.gpu.gpu_device`, probed with the shipped model's graph)."""
-    from spk2img.core.onnx_backend import resolve_device
+    from spk2img.runtime.onnx_backend import resolve_device
 
     if options.device in ("cuda", "tensorrt"):
         resolve_device(options.device)  # no such provider: DeviceError, before any work
@@ -265,8 +265,8 @@ def gpu_run(
 
 def stream_spikes(frames: int, height: int, width: int) -> np.ndarray:
     """The streaming benchmark's stream (fast motion, real-like sensor, its seed)."""
-    from spk2img.core.scenes import random_scene
-    from spk2img.core.simulator import SensorConfig, simulate
+    from spk2img.sim.scenes import random_scene
+    from spk2img.sim.simulator import SensorConfig, simulate
 
     rng = np.random.default_rng([BENCH_SEED, 7])
     scene = random_scene(rng, height, width, "fast", "normal")
@@ -319,7 +319,7 @@ def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> P
     trained checkpoints given) by backend, its ONNX graphs exported into ``work``."""
     best = best_tfp_window(cases)
     log(f"best single TFP window on the benchmark set: {best}")
-    tfp_rows = [TfpRow(41), TfpRow(best, "best single window")]
+    tfp_rows = [TfpRow(), TfpRow(best, "best single window")]
     if best == tfp_rows[0].window:
         tfp_rows = [TfpRow(best, "also the best single window")]
     items: list[Row | dict] = [*tfp_rows, TfiRow()]

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from spk2img.core.classical import tfp
-from spk2img.core.metrics import psnr, ssim
+from spk2img.evaluation.metrics import psnr, ssim
+from spk2img.runtime.classical import tfp
+from spk2img.sim.simulator import CENTER_FRAME
 
-from .cases import CENTER, SCENE_CLASSES, SENSORS, BenchSet
+from .cases import SCENE_CLASSES, SENSORS, BenchSet
 
 TFP_WINDOWS = tuple(range(3, 42, 2))
 
@@ -49,6 +50,6 @@ def best_tfp_window(cases: BenchSet) -> int:
 
     def mean_psnr(window: int) -> float:
         pairs = zip(cases.spikes, cases.truth, strict=True)
-        return float(np.mean([psnr(tfp(s, [CENTER], window)[0], t) for s, t in pairs]))
+        return float(np.mean([psnr(tfp(s, [CENTER_FRAME], window)[0], t) for s, t in pairs]))
 
     return max(TFP_WINDOWS, key=mean_psnr)

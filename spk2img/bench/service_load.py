@@ -3,7 +3,7 @@
 The real ``spk2img serve`` runs in a subprocess on a free port of 127.0.0.1 with ``--threads T``
 (its default: ``T`` workers of one onnxruntime thread each). Each request uploads one 41-frame
 window and gets its centre frame back through :class:`~spk2img.clients.Client`. The in-process
-baseline runs the same graph in one :class:`~spk2img.core.onnx_backend.OnnxModel` of one thread
+baseline runs the same graph in one :class:`~spk2img.runtime.onnx_backend.OnnxModel` of one thread
 in a pool of ``T`` threads fed by as many concurrent callers — the service minus HTTP.
 """
 
@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .cases import CENTER
+from spk2img.sim.simulator import CENTER_FRAME
+
 from .worker import thread_env
 
 START_TIMEOUT_S = 120
@@ -127,7 +128,7 @@ def service_benchmark(
     of concurrent clients in ``levels``; ``overhead`` is in-process frames/s over the service's.
     ``device``: where both run; the service must report that it runs there (``/readyz``), else
     :class:`RuntimeError`."""
-    from spk2img.core.onnx_backend import OnnxModel
+    from spk2img.runtime.onnx_backend import OnnxModel
 
     batch = window[None].astype(np.float32)
     # the service's intra-op threads: T // T workers
@@ -178,13 +179,13 @@ def http_caller(url: str, window: np.ndarray) -> Callable[[], None]:
     """A call that uploads ``window (41, H, W)`` as a ``.dat`` body and reads its centre frame
     back (one client per calling thread, no retries)."""
     from spk2img.clients import Client
-    from spk2img.core.spikes import pack_frames
+    from spk2img.io.spikes import pack_frames
 
     client = Client(url, retries=0)
     body, (height, width) = pack_frames(window), window.shape[1:]
 
     def call() -> None:
-        frames = list(client.reconstruct(body, height, width, centers=[CENTER]))
+        frames = list(client.reconstruct(body, height, width, centers=[CENTER_FRAME]))
         if len(frames) != 1:
             raise RuntimeError(f"the service sent {len(frames)} frames, not 1")
 

@@ -2,7 +2,7 @@
 
 - block reuse: a long simulated stream reconstructed at every 7th frame, each window run whole
   against each 13-frame block encoded once, side by side, each in its own fresh process;
-- quality tiers: ``best``, ``balanced`` and ``fast`` (:mod:`spk2img.core.adaptive`) on every
+- quality tiers: ``best``, ``balanced`` and ``fast`` (:mod:`spk2img.runtime.adaptive`) on every
   window of the benchmark set, time and PSNR/SSIM per scene class.
 """
 
@@ -14,14 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.scenes import random_scene
-from spk2img.core.simulator import SensorConfig, simulate
+from spk2img.sim.scenes import random_scene
+from spk2img.sim.simulator import SensorConfig, simulate
 
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet
 from .scores import quality
 from .worker import WorkerError, run_job
 
-STREAM_STRIDE = 7
 MD_NAME, JSON_NAME = "bench_streaming.md", "bench_streaming.json"
 WORKER_TIMEOUT_S = 3600
 
@@ -36,11 +35,12 @@ def stream_benchmark(
     log: Callable[[str], None],
 ) -> dict:
     """Time the ONNX ``model`` (with its block graphs beside it) on a ``frames``-frame stream of
-    a fast-moving scene (real-like sensor) at every 7th centre, whole and with block reuse, at
-    each thread count; with the outputs' largest difference and the MAC ratio."""
-    from spk2img.core.onnx_backend import OnnxModel
+    a fast-moving scene (real-like sensor) at every ``block_stride``-th centre of its geometry
+    (7 for the shipped models), whole and with block reuse, at each thread count; with the outputs'
+    largest difference and the MAC ratio."""
     from spk2img.model.checkpoint import config_from_dict
     from spk2img.model.complexity import count_macs, count_stream_macs
+    from spk2img.runtime.onnx_backend import OnnxModel
 
     rng = np.random.default_rng([BENCH_SEED, 7])
     log(f"simulating a {frames}-frame {height}x{width} stream (fast motion, real-like sensor)")
@@ -62,7 +62,7 @@ def stream_benchmark(
                 "mode": mode,
                 "threads": [t],
                 "spikes": str(work / "stream.npy"),
-                "stride": STREAM_STRIDE,
+                "stride": config.block_stride,
                 "outputs": str(work / f"{mode}.npy"),
             }
             try:
@@ -87,7 +87,7 @@ def stream_benchmark(
         "frames": frames,
         "height": height,
         "width": width,
-        "stride": STREAM_STRIDE,
+        "stride": config.block_stride,
         "macs": {"whole": whole_macs, "encoder": encoder, "head": head},
         "mac_ratio": (encoder + head) / whole_macs,
         "rows": rows,
@@ -169,7 +169,7 @@ def streaming_markdown(results: dict) -> str:
         f"(member `{s['member']}`, {s['graph']} graph) through onnxruntime, two ways, each in a "
         "fresh process after one warm-up call: **whole** runs the one-shot graph on every "
         "41-frame window; **reuse** encodes each 13-frame block once with the encoder graph and "
-        "runs only the align-and-fuse head per centre (`spk2img.core.block_stream`). Times are "
+        "runs only the align-and-fuse head per centre (`spk2img.runtime.block_stream`). Times are "
         "the wall time of the whole stream (one run each, side by side in one bench run).",
         "",
         "| threads | frames out | whole (s) | reuse (s) | reuse / whole | blocks encoded | "

@@ -11,15 +11,15 @@
 - ``{"job": "matmul", "threads": [1, 2], "repeats": 5}``: the fp32 matmul GFLOP/s.
 - ``{"job": "stream", "model": ONNX, "mode": "whole"|"reuse", "threads": [1], "spikes": NPY,
   "stride": 7, "outputs": PATH}``: stream the ``(T, H, W)`` spikes through the network at every
-  ``stride``-th centre, each window whole or each block encoded once
-  (:mod:`spk2img.core.block_stream`), after one untimed warm-up call; the wall seconds, and the
-  frames saved to ``PATH``.
+  ``stride``-th centre (null: the model's block stride), each window whole or each block
+  encoded once (:mod:`spk2img.runtime.block_stream`), after one untimed warm-up call; the wall
+  seconds, and the frames saved to ``PATH``.
 - ``{"job": "gpu", "model": ONNX, "device": "cuda", "batch": 8, "threads": [1], "repeats": 5,
   "cases": DIR, "spikes": NPY}``: on a GPU device (:mod:`spk2img.bench.gpu`), ``batch``
   windows of the benchmark set per call (after two untimed calls), or with ``batch`` 0 the
   stream streamed with block reuse: the median ms per frame and the provider it ran on.
 - ``{"job": "tiers", "model": ONNX, "threads": [1], "cases": DIR, "outputs": DIR}``: each
-  ``quality`` tier (:mod:`spk2img.core.adaptive`) on every window of the benchmark set, after
+  ``quality`` tier (:mod:`spk2img.runtime.adaptive`) on every window of the benchmark set, after
   one warm-up call: the seconds of each window, the share of pixels the balanced tier ran the
   network on, and each tier's images saved to ``DIR/<tier>.npy``.
 
@@ -95,26 +95,24 @@ def measure_matmul(spec: dict) -> dict:
 
 def measure_stream(spec: dict) -> dict:
     """Seconds to stream a spike file through the network whole or with block reuse."""
-    from spk2img.core.block_model import OnnxBlockCodec
-    from spk2img.core.methods import build_reconstructor
-    from spk2img.core.onnx_backend import OnnxModel
-    from spk2img.core.stream import collect, frame_chunks, run_stream
-    from spk2img.core.windows import CenterPlan
+    from spk2img.runtime.loader import load_network
+    from spk2img.runtime.stream import collect, frame_chunks, run_stream
+    from spk2img.runtime.windows import CenterPlan
 
     (threads,) = spec["threads"]
     spikes = np.load(spec["spikes"], mmap_mode="r")
     height, width = spikes.shape[1:]
-    device = spec.get("device", "cpu")
-    model = OnnxModel(spec["model"], threads, device)
-    codec = OnnxBlockCodec(spec["model"], threads, device) if spec["mode"] == "reuse" else None
-    if codec is None:
-        model(np.zeros((1, 41, height, width), np.float32))  # warm-up
-    else:
-        code = codec.encode(np.zeros((codec.block_frames, height, width), np.float32))
-        codec.head([code] * codec.num_blocks, height, width)
-    recon = build_reconstructor(
-        "net", height, width, CenterPlan(41, stride=spec["stride"]), model, codec=codec
+    network = load_network(
+        spec["model"],
+        device=spec.get("device", "cpu"),
+        threads=threads,
+        block_reuse=spec["mode"] == "reuse",
+        warm_up=False,
     )
+    network.warm_up(height, width)
+    geometry = network.geometry
+    stride = spec.get("stride") or geometry.block_stride
+    recon = network.reconstructor(height, width, CenterPlan(geometry.window_frames, stride=stride))
     start = time.perf_counter()
     frames, centers = collect(run_stream(recon, frame_chunks(spikes)), height, width)
     seconds = time.perf_counter() - start
@@ -132,7 +130,7 @@ def measure_gpu(spec: dict) -> dict:
     """ms per frame of one GPU row: one-shot ``batch`` windows a call, or streamed (0)."""
     import tempfile
 
-    from spk2img.core.onnx_backend import OnnxModel
+    from spk2img.runtime.onnx_backend import OnnxModel
 
     (threads,) = spec["threads"]
     model = OnnxModel(spec["model"], threads, spec["device"])
@@ -145,7 +143,7 @@ def measure_gpu(spec: dict) -> dict:
         return {**where, "ms_per_frame": median_ms(seconds) / spec["batch"], "seconds": seconds}
     del model  # the stream job loads its own sessions
     with tempfile.TemporaryDirectory(prefix="spk2img-gpu-") as tmp:
-        stream = {**spec, "mode": "reuse", "stride": 7, "outputs": str(Path(tmp) / "f.npy")}
+        stream = {**spec, "mode": "reuse", "stride": None, "outputs": str(Path(tmp) / "f.npy")}
         result = measure_stream(stream)
     ms = 1000.0 * result["seconds"] / result["outputs"]
     return {
@@ -158,9 +156,9 @@ def measure_gpu(spec: dict) -> dict:
 
 def measure_tiers(spec: dict) -> dict:
     """Seconds and images of each quality tier on every window of the benchmark set."""
-    from spk2img.core.adaptive import balanced_image
-    from spk2img.core.onnx_backend import OnnxModel
-    from spk2img.core.stream import tfp_image
+    from spk2img.runtime.adaptive import balanced_image
+    from spk2img.runtime.onnx_backend import OnnxModel
+    from spk2img.runtime.stream import tfp_image
 
     (threads,) = spec["threads"]
     windows = load_spikes(Path(spec["cases"]))

@@ -16,7 +16,7 @@ from spk2img.cli.extras import (
     extra_message,
     missing_extra,
 )
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 SUBCOMMANDS = [
     "reconstruct",

@@ -12,8 +12,8 @@ from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 
-from spk2img.core.errors import InputError
-from spk2img.core.onnx_backend import DEVICES
+from spk2img.errors import InputError
+from spk2img.runtime.onnx_backend import DEVICES
 
 RUNS_DIR = Path("bench-runs")
 """Where runs go by default, one folder each (git-ignored)."""

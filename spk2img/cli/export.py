@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from spk2img.cli.verify import parse_size
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 EXIT_MISSING_EXTRA = 3
 """The exit code of a command whose optional dependencies are not installed."""

@@ -11,9 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.errors import InputError
-from spk2img.core.sensor_fit import fit_sensor, save_preset
-from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, as_spike_array, read_spikes
+from spk2img.errors import InputError
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, as_spike_array, read_spikes
+from spk2img.sim.sensor_fit import fit_sensor, save_preset
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, check_size
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, check_size
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
 
 def print_shipped_models() -> None:
     """The shipped models: name, member, the sensors they were trained on, and their source."""
-    from spk2img.core.onnx_backend import graph_metadata, shipped_models
+    from spk2img.runtime.onnx_backend import graph_metadata, shipped_models
 
     shipped = shipped_models()
     if not shipped:

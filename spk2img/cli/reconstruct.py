@@ -9,17 +9,15 @@ import numpy as np
 
 from spk2img import api
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
-from spk2img.core.adaptive import QUALITIES, BalancedStream
-from spk2img.core.binning import binning_for_rates, firing_rates
-from spk2img.core.block_stream import BlockReuseStream
-from spk2img.core.errors import InputError
-from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
-from spk2img.core.onnx_backend import DEVICES
-from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
-from spk2img.core.stream import NetStream, collect
-from spk2img.core.windows import MAX_BINNING, check_binning
-
-DEFAULT_STRIDE = api.DEFAULT_STRIDE
+from spk2img.errors import InputError
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
+from spk2img.runtime.adaptive import QUALITIES, BalancedStream
+from spk2img.runtime.binning import binning_for_rates, firing_rates
+from spk2img.runtime.block_stream import BlockReuseStream
+from spk2img.runtime.methods import DEFAULT_TFP_WINDOW, METHODS
+from spk2img.runtime.onnx_backend import DEVICES
+from spk2img.runtime.stream import NetStream, collect
+from spk2img.runtime.windows import MAX_BINNING, check_binning
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -38,7 +36,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     which.add_argument(
         "--stride",
         type=int,
-        help=f"every S-th centre with a full window (default {DEFAULT_STRIDE})",
+        help="every S-th centre with a full window (default: the model's block stride, 7 for "
+        "the shipped models, so that each block is encoded once)",
     )
     p.add_argument("--method", choices=METHODS, default="net", help="default: net")
     p.add_argument("--window", type=int, default=DEFAULT_TFP_WINDOW, help="TFP's window (odd)")
@@ -47,7 +46,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         choices=QUALITIES,
         default="best",
         help="for --method net: best (the network everywhere, default), balanced (the network "
-        "only on tiles that move or are dim, TFP elsewhere) or fast (TFP over the 41 frames)",
+        "only on tiles that move or are dim, TFP elsewhere) or fast (TFP over the network's "
+        "window)",
     )
     p.add_argument(
         "--binning",
@@ -55,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=1,
         metavar="K|auto",
         help="for dim streams (--method net, --quality best): merge K consecutive frames into "
-        "each of the network's 41, so a window spans 41 x K frames; auto picks K from the "
+        "each of the network's frames, so a window spans K times its window; auto picks K from the "
         "stream's firing rate (default 1: none; docs/binning.md)",
     )
     p.add_argument(
@@ -84,8 +84,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--no-block-reuse",
         action="store_true",
-        help="run the network on every window whole, even when centres share 13-frame blocks "
-        "(by default, with a stride that is a multiple of 7, each block is encoded once)",
+        help="run the network on every window whole, even when centres share blocks (by "
+        "default, with a stride that is a multiple of the block stride, each block is encoded "
+        "once)",
     )
     p.add_argument("--url", help="send the work to a running service, e.g. http://127.0.0.1:8000")
     p.add_argument("--png-dir", type=Path, help="also save each frame as a PNG (gamma 1/2.2)")
@@ -93,7 +94,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    stride = args.stride if args.stride is not None or args.centers else DEFAULT_STRIDE
     if args.quality != "best" and args.method != "net":
         raise InputError(f"--quality is for --method net, not {args.method}")
     if args.out.suffix != ".npz":
@@ -110,9 +110,9 @@ def run(args: argparse.Namespace) -> int:
     how = ""
     if args.url:
         args.no_progress = not show_progress(args)  # the client's bar follows the same rule
-        frames, centers = _reconstruct_remote(args, spikes, stride)
+        frames, centers = _reconstruct_remote(args, spikes, args.stride)
     else:
-        frames, centers, how = _reconstruct_local(args, spikes, stride)
+        frames, centers, how = _reconstruct_local(args, spikes, args.stride)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(args.out, frames=frames, centers=centers)
     if args.png_dir:
@@ -140,9 +140,8 @@ def _reconstruct_local(args: argparse.Namespace, spikes: api.Spikes, stride: int
         batch=args.batch,
         binning=args.binning,
     )
-    note = getattr(recon.predict, "device_note", "")
-    if note:
-        say(args, note)
+    if recon.device_note:
+        say(args, recon.device_note)
     n_out = len(recon.centers_for(len(spikes), args.centers, stride))
     pairs = []
     with progress_bar(args, total=len(spikes)) as bar:
@@ -155,7 +154,8 @@ def _reconstruct_local(args: argparse.Namespace, spikes: api.Spikes, stride: int
             pairs.append(pair)
             bar.set_postfix_str(f"{len(pairs)}/{n_out} out", refresh=False)
     frames, centers = collect(pairs, *spikes.shape[1:])
-    return frames, centers, compute_note(recon.last_stream) + device_note(recon.predict)
+    where = device_note(recon.network.predict) if recon.network else ""
+    return frames, centers, compute_note(recon.last_stream) + where
 
 
 def parse_binning(text: str) -> int | str:
@@ -196,7 +196,9 @@ def device_note(predict) -> str:
 def compute_note(recon) -> str:
     """What the network's work came to, for the closing message ('' for whole windows)."""
     if isinstance(recon, BlockReuseStream):
-        return f" (each 13-frame block encoded once: {recon.blocks_encoded} blocks)"
+        return (
+            f" (each {recon.block_frames}-frame block encoded once: {recon.blocks_encoded} blocks)"
+        )
     if isinstance(recon, NetStream) and recon.binning > 1:
         return f" (binning {recon.binning}: {recon.window}-frame windows)"
     if isinstance(recon, BalancedStream) and recon.network_share:
@@ -219,7 +221,7 @@ def save_pngs(directory: Path, frames: np.ndarray, centers: np.ndarray) -> None:
     """Write each frame as ``frame_{centre:06d}.png`` (display gamma 1/2.2)."""
     from PIL import Image
 
-    from spk2img.core.light import to_display
+    from spk2img.io.light import to_display
 
     directory.mkdir(parents=True, exist_ok=True)
     for k, image in zip(centers, to_display(frames), strict=True):

@@ -12,7 +12,7 @@ import argparse
 import typing
 from typing import Any
 
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 DEFAULT_MODEL_HINT = (
     " (the shipped default model is not installed: pass --model MODEL.onnx or set SPK2IMG_MODEL)"

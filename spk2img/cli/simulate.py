@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.cli.progress import add_progress_flags, progress_bar, say
-from spk2img.core.scenes import BRIGHTNESSES, MOTIONS, random_scene
-from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
-from spk2img.core.simulator import SensorConfig, SpikeSimulator, ground_truth
-from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, pack_frames
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, pack_frames
+from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, random_scene
+from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
+from spk2img.sim.simulator import SensorConfig, SpikeSimulator, ground_truth
 
 SENSORS = {
     "ideal": SensorConfig.ideal,

@@ -10,7 +10,7 @@ import dataclasses
 import sys
 
 from spk2img.cli.extras import needs_extra
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 
 def _fields():

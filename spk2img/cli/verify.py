@@ -8,8 +8,8 @@ import json
 import sys
 from pathlib import Path
 
-from spk2img.core.errors import InputError
-from spk2img.core.onnx_backend import DEVICES
+from spk2img.errors import InputError
+from spk2img.runtime.onnx_backend import DEVICES
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -63,7 +63,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch  # the export extra (spk2img.cli.extras checked it is there)
 
-    from spk2img.core.block_model import block_graph_paths
     from spk2img.export import hard_cases
     from spk2img.export.hard_cases import CASE_HEIGHT, CASE_WIDTH
     from spk2img.export.verify import (
@@ -73,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
         verify_block_graphs,
         verify_onnx,
     )
+    from spk2img.runtime.block_codec import block_graph_paths
 
     if args.threads:
         torch.set_num_threads(args.threads)

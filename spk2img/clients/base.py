@@ -9,7 +9,7 @@ from typing import Any, Literal
 
 import httpx
 
-from spk2img.core.methods import DEFAULT_TFP_WINDOW
+from spk2img.runtime.methods import DEFAULT_TFP_WINDOW
 
 from .errors import ConnectionFailed, Spk2ImgError, error_for_status
 from .protocol import Exchange, ReconstructRequest, ServiceURL

@@ -16,7 +16,7 @@ import h11
 import numpy as np
 
 from spk2img import __version__
-from spk2img.core.framing import (
+from spk2img.protocol.framing import (
     MEDIA_TYPE,
     DoneRecord,
     ErrorRecord,

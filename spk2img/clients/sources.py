@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.errors import InputError
-from spk2img.core.spikes import SpikeFormatError, frame_nbytes, pack_frames, read_spikes
+from spk2img.errors import InputError
+from spk2img.io.spikes import SpikeFormatError, frame_nbytes, pack_frames, read_spikes
 
 CHUNK_BYTES = 1 << 18
 """About how many body bytes one write sends (whole frames for arrays and iterables)."""
@@ -95,7 +95,7 @@ def open_upload(source: Source, height: int | None = None, width: int | None = N
     """The :class:`Upload` for ``source`` (see the module docstring); ``height``/``width`` are
     needed for ``.dat`` sources and otherwise, when given, must match the frames.
 
-    Raises :class:`~spk2img.core.errors.InputError` (e.g. ``SpikeFormatError``) for a source
+    Raises :class:`~spk2img.errors.InputError` (e.g. ``SpikeFormatError``) for a source
     that cannot be a spike stream and ``FileNotFoundError`` for a missing file.
     """
     if isinstance(source, str | os.PathLike):

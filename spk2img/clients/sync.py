@@ -80,7 +80,7 @@ class Client(ClientBase):
             gamma: display gamma the service applies for ``uint8``/``png``.
             quality: for ``net``: ``"best"`` (the network everywhere), ``"balanced"`` (the
                 network only on tiles that move or are dim, TFP elsewhere) or ``"fast"``
-                (TFP over the network's 41 frames); see :mod:`spk2img.core.adaptive`.
+                (TFP over the network's 41 frames); see :mod:`spk2img.runtime.adaptive`.
             binning: for ``net`` with quality ``best``, on dim streams: frames merged into each
                 of the network's 41 (:func:`spk2img.suggest_binning` picks one; 1: none).
 

@@ -2,7 +2,7 @@
 
 Consecutive outputs share most of their input: the windows of centres ``k`` and ``k + 7`` share
 four of their five 13-frame blocks. Exported this way, a streaming runtime
-(:class:`spk2img.core.block_stream.BlockReuseStream`) encodes each block once and keeps the
+(:class:`spk2img.runtime.block_stream.BlockReuseStream`) encodes each block once and keeps the
 codes of the blocks still needed, instead of re-running SALI and the feature extractor on every
 block of every output.
 
@@ -33,12 +33,13 @@ import numpy as np
 import torch
 from torch.export import Dim
 
-from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths, code_names
-from spk2img.core.block_stream import BlockReuseStream
-from spk2img.core.stream import collect, frame_chunks, run_stream
-from spk2img.core.windows import NET_WINDOW, CenterPlan
+from spk2img.model.block_code import code_names
 from spk2img.model.block_split import AlignFuseHead, BlockEncoder, repeated_code, role_blocks
 from spk2img.model.network import Spk2ImgNet
+from spk2img.runtime.block_codec import OnnxBlockCodec, block_graph_paths
+from spk2img.runtime.block_stream import BlockReuseStream
+from spk2img.runtime.stream import collect, frame_chunks, run_stream
+from spk2img.runtime.windows import CenterPlan
 
 from .onnx_export import (
     ExportConfig,
@@ -110,27 +111,30 @@ def block_parity(
     seed: int = 0,
 ) -> float:
     """Largest difference between the block graphs beside ``model_path``, streamed with block
-    reuse at stride 7 over a random ``(frames, height, width)`` stream, and ``model`` run in
+    reuse at the block stride over a random ``(frames, height, width)`` stream, and ``model`` run in
     PyTorch on each window at once (linear intensity units)."""
     spikes = (np.random.default_rng(seed).random((frames, height, width)) < 0.3).astype(np.uint8)
-    streamed, centers = stream_block_graphs(model_path, spikes)
+    streamed, centers, _ = stream_block_graphs(model_path, spikes)
     return float(np.abs(streamed - whole_windows(model, spikes, centers)).max())
 
 
 def stream_block_graphs(
-    model_path: str | Path, spikes: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(T, H, W)`` spikes streamed at every 7th centre through the block graphs beside
-    ``model_path`` (one onnxruntime thread): ``frames (N, H, W)`` and ``centers (N,)``."""
+    model_path: str | Path, spikes: np.ndarray, device: str = "cpu"
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """``(T, H, W)`` spikes streamed through the block graphs beside ``model_path`` (one
+    onnxruntime thread on ``device``) at every ``block_stride``-th centre of their geometry, each
+    block encoded once: ``frames (N, H, W)``, ``centers (N,)`` and the device they ran on."""
     height, width = spikes.shape[1:]
-    codec = OnnxBlockCodec(model_path, threads=1)
-    recon = BlockReuseStream(height, width, CenterPlan(NET_WINDOW, stride=7), codec)
-    return collect(run_stream(recon, frame_chunks(spikes)), height, width)
+    codec = OnnxBlockCodec(model_path, threads=1, device=device)
+    geometry = codec.geometry
+    plan = CenterPlan(geometry.window_frames, stride=geometry.block_stride)
+    recon = BlockReuseStream(height, width, plan, codec)
+    return (*collect(run_stream(recon, frame_chunks(spikes)), height, width), codec.device)
 
 
 def whole_windows(model: Spk2ImgNet, spikes: np.ndarray, centers: np.ndarray) -> np.ndarray:
-    """``model`` in PyTorch on the whole 41-frame window of each centre: ``(N, H, W)``."""
-    half = NET_WINDOW // 2
+    """``model`` in PyTorch on the whole window of each centre: ``(N, H, W)``."""
+    half = model.config.geometry.half
     windows = np.stack([spikes[k - half : k + half + 1] for k in centers]).astype(np.float32)
     with torch.no_grad():
         return model.eval()(torch.from_numpy(windows))[0][:, 0].numpy()

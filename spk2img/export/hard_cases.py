@@ -1,8 +1,9 @@
 """The inputs on which an exported graph must agree with PyTorch: simulated scenes and hard cases.
 
-Every case is a batch of spike windows ``(B, 41, H, W)`` float32 0/1, fixed by seeds, and the
-onnxruntime thread counts to run it with. A case may ask for a *variant* of the network:
-``far offsets`` is a copy whose offset predictors are pushed so that every deformable tap
+Every case is a batch of spike windows ``(B, 41, H, W)`` (:data:`CASE_FRAMES`) float32 0/1,
+fixed by seeds, and the onnxruntime thread counts to run it with. A case may ask for a *variant* of
+the network: ``far offsets`` is a copy whose offset predictors are pushed so that every deformable
+tap
 samples about 10**5 px outside the image (:func:`far_offset_copy`), exported the same way as the
 graph under test.
 """
@@ -15,15 +16,18 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from spk2img.core.evaluation import validation_set
-from spk2img.core.scenes import Motion, MovingImage, random_scene
-from spk2img.core.simulator import SensorConfig, simulate
-from spk2img.core.windows import NET_WINDOW
+from spk2img.evaluation.scoring import validation_set
+from spk2img.model.config import PUBLISHED_GEOMETRY
 from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.model.network import Spk2ImgNet
+from spk2img.sim.scenes import Motion, MovingImage, random_scene
+from spk2img.sim.simulator import SensorConfig, simulate
 
 HARD_CASE_SEED = 271_828  # disjoint from training (< 10**6 but never used there) and validation
 CASE_HEIGHT, CASE_WIDTH = 48, 64  # size of the content hard cases
+CASE_FRAMES = PUBLISHED_GEOMETRY.window_frames
+"""Frames of every case's windows (41): a network with a shorter window reads their centred crop
+(:meth:`~spk2img.model.config.Geometry.crop`)."""
 FULL_SIZES = ((17, 23), (250, 250), (250, 400), (1000, 1000))
 QUICK_SIZES = ((17, 23), (250, 250))
 FAST_SPEED = 8.0  # px/frame, well beyond the 'fast' class (0.5-3 px/frame) the net trains on
@@ -80,7 +84,7 @@ def simulated_windows(
     if speed is not None:
         motion = Motion(rng, height, width, speed)
         scene = MovingImage(scene.source, height, width, motion, scene.meta)
-    spikes = simulate(scene, NET_WINDOW, sensor or SensorConfig.real(), rng)
+    spikes = simulate(scene, CASE_FRAMES, sensor or SensorConfig.real(), rng)
     return spikes[None].astype(np.float32)
 
 
@@ -102,10 +106,10 @@ def scene_cases(per_class: int = 1) -> list[Case]:
 def content_cases() -> list[Case]:
     """Inputs at the edge of what a spike camera sends, ``48x64``."""
     rng = np.random.default_rng(HARD_CASE_SEED)
-    shape = (1, NET_WINDOW, CASE_HEIGHT, CASE_WIDTH)
+    shape = (1, CASE_FRAMES, CASE_HEIGHT, CASE_WIDTH)
     single = np.zeros(shape, np.float32)
-    single[0, NET_WINDOW // 2, CASE_HEIGHT // 2, CASE_WIDTH // 2] = 1.0
-    t, y, x = np.ogrid[:NET_WINDOW, :CASE_HEIGHT, :CASE_WIDTH]
+    single[0, CASE_FRAMES // 2, CASE_HEIGHT // 2, CASE_WIDTH // 2] = 1.0
+    t, y, x = np.ogrid[:CASE_FRAMES, :CASE_HEIGHT, :CASE_WIDTH]
     checker = ((t + y + x) % 2).astype(np.float32)[None]  # each pixel flips every frame
     fast = simulated_windows(rng, CASE_HEIGHT, CASE_WIDTH, "fast", FAST_SPEED)
     scene = simulated_windows(rng, CASE_HEIGHT, CASE_WIDTH)

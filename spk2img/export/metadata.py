@@ -5,7 +5,8 @@ Keys (all values are strings, as ONNX requires):
 - ``name``: the model's name (``spk2img-<member>``, or the checkpoint's stem).
 - ``version``: the spk2img package version that exported it.
 - ``member`` and ``config``: the family member and its :class:`Spk2ImgNetConfig` as JSON.
-- ``window`` (41) and ``rate`` (0.6): the spike frames read and the spikes per frame at I = 1
+- ``window`` (41 as published) and ``rate`` (0.6): the spike frames read (the config's
+  geometry, :meth:`~spk2img.model.config.Geometry.from_metadata`) and the spikes per frame at I = 1
   (docs/format.md, docs/architecture.md); the output is linear intensity ``I`` in [0, 1].
 - ``training_commit`` and ``training_commit_source``: the commit the checkpoint was trained at
   when the checkpoint stores one (``source`` = ``checkpoint``), else the exporting tree's
@@ -30,11 +31,10 @@ from collections.abc import Mapping
 import torch
 
 from spk2img import __version__
-from spk2img.core.light import SPIKE_RATE
-from spk2img.core.provenance import git_commit
-from spk2img.core.windows import NET_WINDOW
+from spk2img.io.light import SPIKE_RATE
 from spk2img.model.checkpoint import config_to_dict
 from spk2img.model.network import Spk2ImgNet
+from spk2img.provenance import git_commit
 
 UNKNOWN = "unknown"
 
@@ -70,7 +70,7 @@ def training_commit(checkpoint: Mapping | None) -> tuple[str, str]:
 def trained_sensors(checkpoint: Mapping) -> str:
     """The sensor regimes a checkpoint's run trained on, in words: on natural data (``--data``)
     the noise-free and the fitted real-camera sensor at its ``ideal_share``; on procedural scenes
-    only, :meth:`~spk2img.core.simulator.SensorConfig.random`'s draws."""
+    only, :meth:`~spk2img.sim.simulator.SensorConfig.random`'s draws."""
     train_config = checkpoint.get("train_config") or {}
     if not train_config.get("data"):
         return "random (procedural scenes only)"
@@ -96,7 +96,7 @@ def model_metadata(
         "version": __version__,
         "member": member,
         "config": json.dumps(config_to_dict(model.config), sort_keys=True),
-        "window": str(NET_WINDOW),
+        "window": str(model.config.window_frames),
         "rate": str(SPIKE_RATE),
         "training_commit": commit,
         "training_commit_source": commit_source,

@@ -23,10 +23,9 @@ import onnx
 import torch
 from torch import nn
 
-from spk2img.core.errors import InputError
-from spk2img.core.windows import NET_WINDOW
+from spk2img.errors import InputError
 from spk2img.model.checkpoint import read_network
-from spk2img.model.config import MEMBERS
+from spk2img.model.config import MEMBERS, Spk2ImgNetConfig
 from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.model.network import Spk2ImgNet, build_model
 
@@ -106,8 +105,11 @@ def checkpoint_source(path: str | Path, name: str | None = None) -> ExportSource
     return ExportSource(model.eval(), metadata)
 
 
-def random_source(member: str, seed: int = 0, name: str | None = None) -> ExportSource:
-    """Member ``member`` with seeded random weights, for tests and benchmarks.
+def random_source(
+    member: str | Spk2ImgNetConfig, seed: int = 0, name: str | None = None
+) -> ExportSource:
+    """Member ``member`` (a name, or a config of its own: member ``custom``) with seeded random
+    weights, for tests and benchmarks.
 
     Every layer gets PyTorch's default initialisation from ``torch.manual_seed(seed)``,
     including the offset/mask predictors of the deformable convs (which training starts at
@@ -115,7 +117,7 @@ def random_source(member: str, seed: int = 0, name: str | None = None) -> Export
     pixels, fractional and spatially varying, and its masks spread over (0, 1), so the exported
     graph's deformable sampling is really exercised (borders included).
     """
-    if member not in MEMBERS:
+    if isinstance(member, str) and member not in MEMBERS:
         raise InputError(f"unknown member {member!r}; choose one of {', '.join(MEMBERS)}")
     generator_state = torch.random.get_rng_state()
     try:
@@ -130,7 +132,8 @@ def random_source(member: str, seed: int = 0, name: str | None = None) -> Export
     finally:
         torch.random.set_rng_state(generator_state)
     source = f"random weights, seed {seed}"
-    metadata = model_metadata(model, name or f"spk2img-{member}-random", member, source, None)
+    label = member if isinstance(member, str) else "custom"
+    metadata = model_metadata(model, name or f"spk2img-{label}-random", label, source, None)
     metadata["random_seed"] = str(seed)
     return ExportSource(model.eval(), metadata)
 
@@ -141,9 +144,8 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
     Returns the written model. Raises :class:`ExportError` if the checker fails or the graph
     uses an operator outside the standard ONNX domain.
     """
-    example = torch.zeros(
-        config.example_batch, NET_WINDOW, config.example_height, config.example_width
-    )
+    frames = source.model.config.window_frames
+    example = torch.zeros(config.example_batch, frames, config.example_height, config.example_width)
     example[:, ::3] = 1.0  # some spikes; the values do not shape the trace
     model = trace_to_onnx(
         ImageOnly(source.model),
@@ -151,8 +153,9 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
         GraphIO([INPUT_NAME], [OUTPUT_NAME], {INPUT_NAME: {0: "batch", 2: "height", 3: "width"}}),
         config,
     )
-    name_dims(list(model.graph.output), ONE_SHOT_IO)  # the crop back to H x W
-    return finish_graph(model, source.metadata, config, out, ONE_SHOT_IO)
+    io = one_shot_io(frames)
+    name_dims(list(model.graph.output), io)  # the crop back to H x W
+    return finish_graph(model, source.metadata, config, out, io)
 
 
 @dataclass(frozen=True)
@@ -165,11 +168,13 @@ class GraphIO:
     dynamic_shapes: dict | tuple
 
 
-ONE_SHOT_IO = {
-    INPUT_NAME: ["batch", NET_WINDOW, "height", "width"],
-    OUTPUT_NAME: ["batch", 1, "height", "width"],
-}
-"""The one-shot graph's I/O contract: names and dims (symbolic names or sizes), in order."""
+def one_shot_io(window_frames: int) -> dict[str, list[str | int]]:
+    """The one-shot graph's I/O contract for a network reading ``window_frames`` frames: names
+    and dims (symbolic names or sizes), in order."""
+    return {
+        INPUT_NAME: ["batch", window_frames, "height", "width"],
+        OUTPUT_NAME: ["batch", 1, "height", "width"],
+    }
 
 
 def trace_to_onnx(
@@ -246,12 +251,10 @@ def operator_counts(model: onnx.ModelProto) -> Counter[tuple[str, str]]:
     return Counter((node.domain, node.op_type) for node in nodes)
 
 
-def check_graph(
-    model: onnx.ModelProto, expected_io: dict[str, list[str | int]] | None = None
-) -> None:
+def check_graph(model: onnx.ModelProto, expected_io: dict[str, list[str | int]]) -> None:
     """Raise :class:`ExportError` unless ``model`` passes ``onnx.checker`` (full check, with
     shape inference), uses standard-domain operators only, and has the I/O contract
-    ``expected_io`` (default: the one-shot graph's, :data:`ONE_SHOT_IO`)."""
+    ``expected_io`` (:func:`one_shot_io` for the one-shot graph)."""
     try:
         onnx.checker.check_model(model, full_check=True)
     except onnx.checker.ValidationError as exc:
@@ -261,9 +264,8 @@ def check_graph(
     if foreign:
         raise ExportError(f"the exported graph uses non-standard operators: {', '.join(foreign)}")
     io = {v.name: _dims(v) for v in [*model.graph.input, *model.graph.output]}
-    expected = ONE_SHOT_IO if expected_io is None else expected_io
-    if io != expected:
-        raise ExportError(f"unexpected graph I/O: {io}, expected {expected}")
+    if io != expected_io:
+        raise ExportError(f"unexpected graph I/O: {io}, expected {expected_io}")
 
 
 def graph_kind(model: onnx.ModelProto) -> str:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import onnx
 
-from spk2img.core.block_model import block_graph_paths
+from spk2img.runtime.block_codec import block_graph_paths
 
 from .block_graphs import block_parity, export_block_graphs
 from .hard_cases import smoke_cases

@@ -28,10 +28,10 @@ from onnxruntime.quantization import (
 from onnxruntime.transformers.float16 import convert_float_to_float16
 from onnxruntime.transformers.onnx_model import OnnxModel as TransformersOnnxModel
 
-from spk2img.core.evaluation import validation_set
-from spk2img.core.metrics import psnr
-from spk2img.core.onnx_backend import OnnxModel
-from spk2img.core.simulator import training_sample
+from spk2img.evaluation.metrics import psnr
+from spk2img.evaluation.scoring import validation_set
+from spk2img.runtime.onnx_backend import OnnxModel
+from spk2img.sim.simulator import training_sample
 
 from .onnx_export import INPUT_NAME, check_graph, operator_counts
 
@@ -106,8 +106,8 @@ def graph_io(model: onnx.ModelProto) -> dict[str, list[str | int]]:
 def reduce_block_graphs(fp32_model: str | Path, out: str | Path, precision: str) -> list[Path]:
     """The ``precision`` variants of the block encoder and head beside the one-shot graph
     ``fp32_model``, written beside ``out`` (``OUT.encoder.onnx``, ``OUT.head.onnx``) so that
-    :class:`~spk2img.core.block_model.OnnxBlockCodec` finds them for ``out``; their paths."""
-    from spk2img.core.block_model import block_graph_paths
+    :class:`~spk2img.runtime.block_codec.OnnxBlockCodec` finds them for ``out``; their paths."""
+    from spk2img.runtime.block_codec import block_graph_paths
 
     sources, targets = block_graph_paths(fp32_model), block_graph_paths(out)
     for part, source in sources.items():

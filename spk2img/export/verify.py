@@ -15,7 +15,7 @@ A case passes when ``max_abs <= atol`` and ``nonfinite == 0``. A reduced-precisi
 GPU's precision, docs/gpu.md) cannot hold float32's ``atol``: its cases pass when
 ``psnr_db >= MIN_PSNR_VS_FP32`` (30 dB, the bar ``export`` sets such graphs against fp32) and
 ``nonfinite == 0``, and every case reports its errors all the same. ``device`` runs the
-onnxruntime side on a GPU (:func:`spk2img.core.onnx_backend.create_session`).
+onnxruntime side on a GPU (:func:`spk2img.runtime.onnx_backend.create_session`).
 """
 
 from __future__ import annotations
@@ -31,16 +31,12 @@ import numpy as np
 import onnx
 import torch
 
-from spk2img.core.block_model import OnnxBlockCodec
-from spk2img.core.block_stream import BlockReuseStream
-from spk2img.core.errors import InputError
-from spk2img.core.metrics import psnr
-from spk2img.core.onnx_backend import create_session
-from spk2img.core.stream import collect, frame_chunks, run_stream
-from spk2img.core.windows import NET_WINDOW, CenterPlan
+from spk2img.errors import InputError
+from spk2img.evaluation.metrics import psnr
 from spk2img.model.network import Spk2ImgNet
+from spk2img.runtime.onnx_backend import create_session
 
-from .block_graphs import whole_windows
+from .block_graphs import stream_block_graphs, whole_windows
 from .hard_cases import Case, far_offset_copy
 from .metadata import weights_sha256
 from .onnx_export import (
@@ -76,7 +72,7 @@ class CaseResult:
     precision: str = "fp32"
     """The graph's precision: ``fp32``, ``fp16`` or ``int8``."""
     device: str = "cpu"
-    """Where onnxruntime ran it (:data:`~spk2img.core.onnx_backend.DEVICES`, concrete)."""
+    """Where onnxruntime ran it (:data:`~spk2img.runtime.onnx_backend.DEVICES`, concrete)."""
 
 
 def case_passes(scores: dict, precision: str, atol: float) -> bool:
@@ -219,9 +215,10 @@ def verify_onnx(
                 variants[case.variant] = _export_variant(model, case.variant, kind, Path(tmp))
                 graphs[case.variant, "fp32"] = variants[case.variant][1]
             net = variants[case.variant][0]
+            spikes = np.ascontiguousarray(net.config.geometry.crop(case.spikes, axis=1))
             start = time.perf_counter()
             with torch.inference_mode():
-                reference = net(torch.from_numpy(case.spikes))[0][:, 0].numpy()
+                reference = net(torch.from_numpy(spikes))[0][:, 0].numpy()
             torch_s = time.perf_counter() - start
             for precision in precisions:
                 path = graph_for(case.variant, precision)
@@ -231,14 +228,14 @@ def verify_onnx(
                 for threads in counts:
                     session = create_session(path, threads, device)
                     start = time.perf_counter()
-                    output = session.session.run(None, {INPUT_NAME: case.spikes})[0][:, 0]
+                    output = session.session.run(None, {INPUT_NAME: spikes})[0][:, 0]
                     onnx_s = time.perf_counter() - start
                     where = session.device
                     del session
                     scores = compare_outputs(reference, output)
                     result = CaseResult(
                         case.name,
-                        case.spikes.shape,
+                        spikes.shape,
                         threads,
                         **scores,
                         torch_s=torch_s,
@@ -267,27 +264,24 @@ def verify_block_graphs(
     fp16: bool = False,
     device: str = "cpu",
 ) -> CaseResult:
-    """The block encoder and head beside ``onnx_path`` streamed at stride 7 over ``spikes``
-    ``(T, H, W)`` with block reuse, against ``model`` on each window whole (one thread).
+    """The block encoder and head beside ``onnx_path`` streamed at their block stride over
+    ``spikes`` ``(T, H, W)`` with block reuse, against ``model`` on each window whole (one thread).
     ``fp16``: the fp16 conversions of both graphs instead; ``device``: where they run."""
     graph = onnx.load(onnx_path, load_external_data=False)
     precision = "fp16" if fp16 else graph_precision(graph)
-    height, width = spikes.shape[1:]
     with tempfile.TemporaryDirectory(prefix="spk2img-verify-") as tmp:
         if fp16:
             converted = Path(tmp) / "fp16.onnx"
             reduce_block_graphs(onnx_path, converted, "fp16")
             onnx_path = converted
         start = time.perf_counter()
-        codec = OnnxBlockCodec(onnx_path, threads=1, device=device)
-        recon = BlockReuseStream(height, width, CenterPlan(NET_WINDOW, stride=7), codec)
-        streamed, centers = collect(run_stream(recon, frame_chunks(spikes)), height, width)
+        streamed, centers, ran_on = stream_block_graphs(onnx_path, spikes, device)
         onnx_s = time.perf_counter() - start
     start = time.perf_counter()
     reference = whole_windows(model, spikes, centers)
     torch_s = time.perf_counter() - start
     scores = compare_outputs(reference, streamed)
-    shape = (len(reference), NET_WINDOW, *spikes.shape[1:])
+    shape = (len(reference), model.config.window_frames, *spikes.shape[1:])
     ok = case_passes(scores, precision, atol)
     return CaseResult(
         name,
@@ -298,7 +292,7 @@ def verify_block_graphs(
         onnx_s=onnx_s,
         passed=ok,
         precision=precision,
-        device=codec.device,
+        device=ran_on,
     )
 
 

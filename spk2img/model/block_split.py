@@ -21,9 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from spk2img.core.block_model import CODE_ROLES
-
 from .alignment import PCDAlignment
+from .block_code import CODE_ROLES
 from .network import Spk2ImgNet, pad_to_multiple, per_neighbour, to_intensity, without_key
 
 
@@ -66,7 +65,7 @@ def repeated_code(codes: tuple[torch.Tensor, ...], num_blocks: int) -> tuple[tor
 
 class BlockEncoder(nn.Module):
     """``(b, 13, H, W)`` spikes -> the flat tuple of one block's code (in the order of
-    :func:`~spk2img.core.block_model.code_names`); ``H`` and ``W`` are padded to the network's
+    :func:`~spk2img.model.block_code.code_names`); ``H`` and ``W`` are padded to the network's
     size multiple inside."""
 
     def __init__(self, model: Spk2ImgNet) -> None:
@@ -83,7 +82,7 @@ class BlockEncoder(nn.Module):
 class AlignFuseHead(nn.Module):
     """A window's block codes -> ``(b, 1, hp, wp)`` linear intensity in [0, 1], still padded.
 
-    Inputs in the order of :func:`~spk2img.core.block_model.code_names`: ``feat_l*``
+    Inputs in the order of :func:`~spk2img.model.block_code.code_names`: ``feat_l*``
     ``(b, blocks, c, h_l, w_l)`` (every block in temporal order), ``nbr_l*``
     ``(b, blocks - 1, c, h_l, w_l)`` (the neighbours in order) and ``key_l*``
     ``(b, c, h_l, w_l)`` (the key block's).

@@ -9,7 +9,7 @@ from pickle import UnpicklingError
 
 import torch
 
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 from .config import Spk2ImgNetConfig
 from .network import Spk2ImgNet

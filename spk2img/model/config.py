@@ -7,7 +7,94 @@ width, depth or resolution.
 
 from __future__ import annotations
 
+import json
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """Which spike frames a network reads and how they split into blocks: all the runtime, the
+    evaluation and the service need to know of a model (in torch from its config, in ONNX from
+    the graph's ``config`` metadata, :meth:`from_metadata`).
+
+    A window of :attr:`window_frames` frames (odd) is centred on the output frame ``k``: frames
+    ``k - half .. k + half``. Its :attr:`num_blocks` blocks of :attr:`block_frames` frames start
+    every :attr:`block_stride` frames; the middle block is the key.
+    """
+
+    block_frames: int
+    """Frames of one temporal block (13 as published)."""
+    block_stride: int
+    """Frames between the starts of consecutive blocks (7 as published)."""
+    num_blocks: int
+    """Temporal blocks of a window (odd; 5 as published)."""
+    size_multiple: int = 1
+    """Height and width are padded to a multiple of this inside the network."""
+
+    def __post_init__(self) -> None:
+        if min(self.block_frames, self.block_stride, self.num_blocks, self.size_multiple) < 1:
+            raise ValueError(f"a geometry's sizes must be positive, got {self}")
+        if self.num_blocks % 2 != 1 or self.block_frames % 2 != 1:
+            raise ValueError(f"blocks and their frames must be odd in number, got {self}")
+
+    @property
+    def window_frames(self) -> int:
+        """Spike frames the network reads, centred on the output frame (41 as published)."""
+        return (self.num_blocks - 1) * self.block_stride + self.block_frames
+
+    @property
+    def half(self) -> int:
+        """Frames on each side of the centre: the first valid centre of a stream (20)."""
+        return self.window_frames // 2
+
+    @property
+    def block_starts(self) -> tuple[int, ...]:
+        """Each block's first frame relative to the centre (-20, -13, -6, 1, 8 as published)."""
+        return tuple(self.block_stride * i - self.half for i in range(self.num_blocks))
+
+    @property
+    def block_centres(self) -> tuple[int, ...]:
+        """Each block's middle frame within the window (6, 13, 20, 27, 34 as published): the
+        frames the ground truth of training is taken at."""
+        return tuple(s + self.half + self.block_frames // 2 for s in self.block_starts)
+
+    def crop(self, windows, axis: int = 0):
+        """The centred :attr:`window_frames` of longer windows whose frames run along ``axis``
+        (an array; a window of the right length is returned as it is); a shorter or
+        off-centre window raises ``ValueError``."""
+        frames = windows.shape[axis]
+        extra = frames - self.window_frames
+        if extra < 0 or extra % 2:
+            raise ValueError(f"a {frames}-frame window has no centred {self.window_frames} frames")
+        index = [slice(None)] * windows.ndim
+        index[axis] = slice(extra // 2, extra // 2 + self.window_frames)
+        return windows[tuple(index)]
+
+    def as_dict(self) -> dict[str, int]:
+        """The geometry as JSON-ready numbers, ``window_frames`` included."""
+        return {
+            "window_frames": self.window_frames,
+            "block_frames": self.block_frames,
+            "block_stride": self.block_stride,
+            "num_blocks": self.num_blocks,
+            "size_multiple": self.size_multiple,
+        }
+
+    @classmethod
+    def from_metadata(cls, metadata: Mapping[str, str]) -> Geometry:
+        """The geometry an exported graph records: its ``config`` metadata (the network's
+        :class:`Spk2ImgNetConfig` as JSON, spk2img.export.metadata); ``ValueError`` when absent."""
+        if "config" not in metadata:
+            raise ValueError("the graph carries no 'config' metadata: export it with spk2img")
+        config = json.loads(metadata["config"])
+        levels, stride = int(config["pyramid_levels"]), int(config.get("feature_stride", 1))
+        return cls(
+            block_frames=int(config["block_frames"]),
+            block_stride=int(config["block_stride"]),
+            num_blocks=int(config["num_blocks"]),
+            size_multiple=stride * 2 ** (levels - 1),
+        )
 
 
 @dataclass(frozen=True)
@@ -63,11 +150,17 @@ class Spk2ImgNetConfig:
             raise ValueError(f"pyramid_levels must be >= 1, got {self.pyramid_levels}")
         if self.feature_stride < 1:
             raise ValueError(f"feature_stride must be >= 1, got {self.feature_stride}")
+        self.geometry  # noqa: B018 (checks that the blocks make a centred window)
+
+    @property
+    def geometry(self) -> Geometry:
+        """The frames the network reads and their blocks (:class:`Geometry`)."""
+        return Geometry(self.block_frames, self.block_stride, self.num_blocks, self.size_multiple)
 
     @property
     def window_frames(self) -> int:
         """Spike frames the network reads (41 as published, centred on the output frame)."""
-        return (self.num_blocks - 1) * self.block_stride + self.block_frames
+        return self.geometry.window_frames
 
     @property
     def size_multiple(self) -> int:
@@ -77,6 +170,11 @@ class Spk2ImgNetConfig:
 
 
 PAPER = Spk2ImgNetConfig()
+
+PUBLISHED_GEOMETRY = PAPER.geometry
+"""The published window (41 frames, five 13-frame blocks 7 apart), shared by every shipped model:
+the length the simulated evaluation sets are filmed at and TFP's default window. A model with a
+shorter window reads their centred crop (:meth:`Geometry.crop`)."""
 
 MEMBERS: dict[str, Spk2ImgNetConfig] = {
     "paper": PAPER,

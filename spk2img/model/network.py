@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from spk2img.core.light import SPIKE_RATE
+from spk2img.io.light import SPIKE_RATE
 
 from .alignment import FeaturePyramid, PCDAlignment
 from .config import Spk2ImgNetConfig, get_config

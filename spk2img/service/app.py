@@ -1,5 +1,6 @@
 """The app factory: ``create_app(settings)`` builds a FastAPI app whose lifespan loads the ONNX
-model, starts the inference pool and warms the model up before ``/readyz`` turns 200."""
+network (:func:`~spk2img.runtime.loader.load_network`), starts the inference pool and warms the
+network up before ``/readyz`` turns 200."""
 
 from __future__ import annotations
 
@@ -7,14 +8,12 @@ import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from functools import partial
 
-import numpy as np
 from fastapi import FastAPI
 
 from spk2img import __version__
-from spk2img.core.block_model import OnnxBlockCodec, block_graph_paths
-from spk2img.core.onnx_backend import OnnxModel
-from spk2img.core.windows import NET_WINDOW
+from spk2img.runtime.loader import load_network
 
 from .errors import install_error_handlers
 from .inference import InferencePool
@@ -22,9 +21,6 @@ from .metrics import MetricsMiddleware
 from .routers import health, models, reconstruct, viewer
 from .settings import ServiceSettings
 from .state import ServiceState
-
-WARMUP_SIZE = 32
-"""Side of the zero window the model runs once before the service reports ready (pixels)."""
 
 logger = logging.getLogger("spk2img.service")
 
@@ -51,17 +47,20 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     state: ServiceState = app.state.service
     settings = state.settings
-    state.model = await asyncio.to_thread(
-        OnnxModel, settings.model_path, settings.intra_op_threads, settings.device
-    )  # a GPU device that cannot run here raises: the service does not start
-    if state.model.device_note:
-        logger.warning("%s", state.model.device_note)
-    logger.info("model runs on %s (%s)", state.model.device, state.model.provider)
-    parts = block_graph_paths(settings.model_path).values()
-    if settings.block_reuse and all(path.is_file() for path in parts):
-        state.codec = await asyncio.to_thread(
-            OnnxBlockCodec, settings.model_path, settings.intra_op_threads, state.model.device
-        )
+    load = partial(
+        load_network,
+        settings.model_path,
+        device=settings.device,
+        threads=settings.intra_op_threads,
+        block_reuse=settings.block_reuse,
+        batch=settings.batch,
+        warm_up=False,  # in the pool, after start-up: /readyz says when it is done
+    )
+    state.network = await asyncio.to_thread(load)  # a GPU that cannot run here: no start
+    model = state.network.predict
+    if model.device_note:
+        logger.warning("%s", model.device_note)
+    logger.info("model runs on %s (%s)", model.device, model.provider)
     pool = InferencePool(settings.job_workers, settings.max_queue, settings.memory_budget_bytes)
     state.pool = pool
     state.metrics.watch_pool(lambda: pool.jobs, lambda: pool.admitted, lambda: pool.reserved)
@@ -74,24 +73,15 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         state.pool.shutdown()
 
 
-def _warm_up_codec(codec: OnnxBlockCodec) -> None:
-    block = np.zeros((codec.block_frames, WARMUP_SIZE, WARMUP_SIZE), np.float32)
-    code = codec.encode(block)
-    codec.head([code] * codec.num_blocks, WARMUP_SIZE, WARMUP_SIZE)
-
-
 async def _warm_up(state: ServiceState) -> None:
-    """Run the model (and the block encoder and head) once on zeros, then mark the service
+    """Run the network (and the block encoder and head) once on zeros, then mark the service
     ready."""
     state.waiting_for = "the model to warm up"
-    window = np.zeros((1, NET_WINDOW, WARMUP_SIZE, WARMUP_SIZE), np.float32)
     try:
-        await state.pool.run(state.model, window)
-        if state.codec is not None:
-            await state.pool.run(_warm_up_codec, state.codec)
+        await state.pool.run(state.network.warm_up)
     except Exception as exc:  # noqa: BLE001 - reported by /readyz and the log, never fatal
         logger.exception("the model failed its warm-up")
         state.waiting_for = f"a model that runs (warm-up failed: {exc})"
         return
     state.ready = True
-    logger.info("model %s loaded and warmed: ready", state.model.path.name)
+    logger.info("model %s loaded and warmed: ready", state.network.predict.path.name)

@@ -29,7 +29,7 @@ from typing import TypeVar
 from starlette.responses import Response
 from starlette.types import Receive, Scope, Send
 
-from spk2img.core.framing import MEDIA_TYPE, encode_done, encode_error
+from spk2img.protocol.framing import MEDIA_TYPE, encode_done, encode_error
 
 from .errors import RequestError, as_request_error, error_response
 from .inference import Admission

@@ -8,7 +8,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
-from spk2img.core.errors import InputError
+from spk2img.errors import InputError
 
 logger = logging.getLogger("spk2img.service")
 

@@ -1,7 +1,7 @@
 """One request's reconstruction: ``.dat`` bytes in, encoded ``FRAM`` records out.
 
-:class:`StreamJob` wraps the core pieces — :class:`~spk2img.core.spikes.SpikeDecoder`, a
-:class:`~spk2img.core.stream.StreamingReconstructor` and the framing — and enforces the
+:class:`StreamJob` wraps the core pieces — :class:`~spk2img.io.spikes.SpikeDecoder`, a
+:class:`~spk2img.runtime.stream.StreamingReconstructor` and the framing — and enforces the
 per-request limits. Its :meth:`~StreamJob.feed` and :meth:`~StreamJob.finish` run in the
 inference pool, one call at a time; :meth:`~StreamJob.cancel` may be called from any thread.
 """
@@ -14,13 +14,14 @@ import threading
 import numpy as np
 from PIL import Image
 
-from spk2img.core.block_model import BlockCodec
-from spk2img.core.framing import encode_frame
-from spk2img.core.light import to_display
-from spk2img.core.methods import build_reconstructor, method_window
-from spk2img.core.spikes import SpikeDecoder
-from spk2img.core.stream import Frame, Predictor, TFIStream
-from spk2img.core.windows import CenterPlan
+from spk2img.io.light import to_display
+from spk2img.io.spikes import SpikeDecoder
+from spk2img.model.config import Geometry
+from spk2img.protocol.framing import encode_frame
+from spk2img.runtime.loader import LoadedNetwork
+from spk2img.runtime.methods import build_reconstructor, method_window
+from spk2img.runtime.stream import Frame, TFIStream
+from spk2img.runtime.windows import CenterPlan
 
 from .errors import RequestError
 from .schemas import ReconstructQuery
@@ -53,13 +54,16 @@ def check_upload_size(settings: ServiceSettings, n_bytes: int, n_frames: int) ->
         raise RequestError(413, f"the upload is over {settings.max_frames} frames")
 
 
-def job_memory(query: ReconstructQuery, settings: ServiceSettings, response_bytes: int) -> int:
+def job_memory(
+    query: ReconstructQuery, settings: ServiceSettings, response_bytes: int, geometry: Geometry
+) -> int:
     """An upper estimate of the memory one request may use: the model's activations (``net``:
-    :data:`NET_BYTES_PER_PIXEL` per pixel and window of a call), the window, and the records
-    waiting for the client (``response_bytes``, at most ``response_buffer_bytes``)."""
+    :data:`NET_BYTES_PER_PIXEL` per pixel and window of a call), the window (``net``: the
+    served network's ``geometry``), and the records waiting for the client (``response_bytes``,
+    at most ``response_buffer_bytes``)."""
     pixels = query.height * query.width
     model = query.method == "net" and query.quality != "fast"
-    window = method_window(query.method, query.window, query.binning)
+    window = method_window(query.method, query.window, query.binning, geometry=geometry)
     memory = JOB_BYTES + pixels * window * WINDOW_BYTES_PER_PIXEL
     if model:
         memory += pixels * NET_BYTES_PER_PIXEL * settings.batch
@@ -81,9 +85,9 @@ def frame_record_bytes(query: ReconstructQuery) -> int:
 class StreamJob:
     """Decode, reconstruct and encode one uploaded stream of ``query.height x query.width`` frames.
 
-    The network runs ``settings.batch`` windows per model call, or, with a ``codec`` and
-    centres that share blocks, encodes each block once and runs the head per centre
-    (:func:`~spk2img.core.methods.build_reconstructor`); classical methods push
+    The ``network`` (``method=net``) runs ``settings.batch`` windows per model call, or, with
+    its block codec and centres that share blocks, encodes each block once and runs the head per
+    centre (:meth:`~spk2img.runtime.loader.LoadedNetwork.reconstructor`); classical methods push
     :data:`STEP_PIXELS` at a time. Between steps the job checks for :meth:`cancel`.
     """
 
@@ -92,22 +96,17 @@ class StreamJob:
         query: ReconstructQuery,
         plan: CenterPlan,
         settings: ServiceSettings,
-        predict: Predictor | None = None,
-        codec: BlockCodec | None = None,
+        network: LoadedNetwork | None = None,
     ):
         self.query, self.settings = query, settings
         self.decoder = SpikeDecoder(query.height, query.width)
-        self.recon = build_reconstructor(
-            query.method,
-            query.height,
-            query.width,
-            plan,
-            predict,
-            settings.batch,
-            codec,
-            query.quality,
-            query.binning,
-        )
+        size = (query.height, query.width)
+        if query.method == "net":
+            if network is None:
+                raise ValueError("method net needs the served network")
+            self.recon = network.reconstructor(*size, plan, query.quality, query.binning)
+        else:
+            self.recon = build_reconstructor(query.method, *size, plan)
         pixels = query.height * query.width
         self.step = settings.batch if query.method == "net" else max(1, STEP_PIXELS // pixels)
         self.bytes_received = 0
@@ -129,7 +128,7 @@ class StreamJob:
     def finish(self) -> list[bytes]:
         """The upload ended: check it and return the records still owed.
 
-        Raises :class:`~spk2img.core.errors.InputError` for a partial last frame, an empty
+        Raises :class:`~spk2img.errors.InputError` for a partial last frame, an empty
         stream or a centre without a full window.
         """
         self.decoder.finish()

@@ -6,12 +6,12 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from spk2img.core.adaptive import QUALITIES
-from spk2img.core.framing import FORMATS
-from spk2img.core.light import DISPLAY_GAMMA
-from spk2img.core.methods import DEFAULT_TFP_WINDOW, METHODS
-from spk2img.core.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
-from spk2img.core.windows import MAX_BINNING
+from spk2img.io.light import DISPLAY_GAMMA
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
+from spk2img.protocol.framing import FORMATS
+from spk2img.runtime.adaptive import QUALITIES
+from spk2img.runtime.methods import DEFAULT_TFP_WINDOW, METHODS
+from spk2img.runtime.windows import MAX_BINNING
 
 Method = Literal[METHODS]  # type: ignore[valid-type]
 FrameFormat = Literal[tuple(FORMATS)]  # type: ignore[valid-type]
@@ -39,7 +39,10 @@ class ReconstructQuery(BaseModel):
     )
     method: Method = Field("net", description="net (the model), tfp or tfi")
     window: int = Field(
-        DEFAULT_TFP_WINDOW, ge=1, le=1_000_000, description="TFP/TFI window (odd; net uses 41)"
+        DEFAULT_TFP_WINDOW,
+        ge=1,
+        le=1_000_000,
+        description="TFP/TFI window (odd; net uses the model's window)",
     )
     quality: Quality = Field(
         "best",
@@ -51,7 +54,7 @@ class ReconstructQuery(BaseModel):
         ge=1,
         le=MAX_BINNING,
         description="for net with quality best, on dim streams: stream frames merged into each "
-        "of the network's 41 (a window spans 41 x binning frames; 1: none)",
+        "of the network's frames (a window spans its window x binning frames; 1: none)",
     )
     format: FrameFormat = Field(
         "float32", description="float32 linear intensity, or uint8/png display values"
@@ -92,7 +95,13 @@ class ModelInfo(BaseModel):
     name: str = Field(description="the model's name (metadata 'name', else the file's stem)")
     method: Method = "net"
     file: str = Field(description="the ONNX file's name")
-    window: int = Field(description="spike frames per reconstruction")
+    window: int = Field(
+        description="spike frames per reconstruction (the geometry's window_frames)"
+    )
+    geometry: dict[str, int] = Field(
+        description="the frames the network reads and their blocks: window_frames, block_frames, "
+        "block_stride (the stride at which centres share blocks), num_blocks, size_multiple"
+    )
     input_name: str = Field(description="the graph's input")
     metadata: dict[str, str] = Field(description="the ONNX metadata_props")
     block_graphs: list[str] = Field(

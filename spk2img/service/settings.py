@@ -122,7 +122,7 @@ class ServiceSettings(BaseSettings):
         """``cuda``/``tensorrt`` only where onnxruntime has the provider (the service refuses
         to start otherwise; whether the GPU itself starts is checked when the model loads)."""
         if device in ("cuda", "tensorrt"):
-            from spk2img.core.onnx_backend import DeviceError, resolve_device
+            from spk2img.runtime.onnx_backend import DeviceError, resolve_device
 
             try:
                 resolve_device(device)
@@ -133,8 +133,8 @@ class ServiceSettings(BaseSettings):
     @property
     def model_path(self) -> Path:
         """The model file to serve: ``model`` (a file or a shipped model's name) or the shipped
-        default; :class:`~spk2img.core.errors.InputError` when there is no such model."""
-        from spk2img.core.onnx_backend import model_path
+        default; :class:`~spk2img.errors.InputError` when there is no such model."""
+        from spk2img.runtime.onnx_backend import model_path
 
         return model_path(self.model)
 

@@ -7,8 +7,7 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 
-from spk2img.core.block_model import OnnxBlockCodec
-from spk2img.core.onnx_backend import OnnxModel
+from spk2img.runtime.loader import LoadedNetwork
 
 from .errors import RequestError
 from .inference import InferencePool
@@ -18,7 +17,7 @@ from .settings import ServiceSettings
 
 @dataclass
 class ServiceState:
-    """The app's settings and metrics, and what the lifespan loads: the model and the pool.
+    """The app's settings and metrics, and what the lifespan loads: the network and the pool.
 
     ``ready`` turns true once the model is loaded and warmed; ``waiting_for`` says what a
     not-ready service is waiting for.
@@ -26,9 +25,9 @@ class ServiceState:
 
     settings: ServiceSettings
     metrics: ServiceMetrics = field(default_factory=ServiceMetrics)
-    model: OnnxModel | None = None
-    codec: OnnxBlockCodec | None = None
-    """The model's block encoder and head, when they are beside it and ``block_reuse`` is on."""
+    network: LoadedNetwork | None = None
+    """The served network (onnxruntime), with its block encoder and head when they are beside
+    it and ``block_reuse`` is on."""
     pool: InferencePool | None = None
     ready: bool = False
     waiting_for: str = "the model to load"
@@ -55,13 +54,13 @@ def ready_service(state: Annotated[ServiceState, Depends(service_state)]) -> Ser
     return state
 
 
-def served_model(state: Annotated[ServiceState, Depends(service_state)]) -> OnnxModel:
-    """The loaded ONNX model (503 before the lifespan has loaded it)."""
-    if state.model is None:
+def served_network(state: Annotated[ServiceState, Depends(service_state)]) -> LoadedNetwork:
+    """The loaded network (503 before the lifespan has loaded it)."""
+    if state.network is None:
         raise state.unavailable()
-    return state.model
+    return state.network
 
 
 Service = Annotated[ServiceState, Depends(service_state)]
 ReadyService = Annotated[ServiceState, Depends(ready_service)]
-ServedModel = Annotated[OnnxModel, Depends(served_model)]
+ServedNetwork = Annotated[LoadedNetwork, Depends(served_network)]

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from spk2img.core.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, random_scene
-from spk2img.core.simulator import GT_FRAMES, SensorConfig, ground_truth, simulate
-from spk2img.core.windows import NET_WINDOW
+from spk2img.model.config import PUBLISHED_GEOMETRY, Geometry
+from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, random_scene
+from spk2img.sim.simulator import SensorConfig, ground_truth, simulate
 
 from .natural_scenes import MAX_LAYERS, clip_scene, photo_scene
 from .sources import SourceIndex, load_clip, load_photo
@@ -82,6 +82,8 @@ class SampleMaker:
             not ideal); None: :meth:`SensorConfig.random`'s draws for every sample.
         ideal_share: share of the samples filmed by the ideal sensor when ``real_sensor`` is
             given (0.5: half and half; 1: noise-free data only, like simulated datasets).
+        geometry: the trained network's window and blocks (the frames filmed, and the block
+            centres the ground truth is taken at).
     """
 
     def __init__(
@@ -93,8 +95,10 @@ class SampleMaker:
         index: SourceIndex | None = None,
         real_sensor: SensorConfig | None = None,
         ideal_share: float = 0.5,
+        geometry: Geometry = PUBLISHED_GEOMETRY,
     ):
         check_ideal_share(ideal_share)
+        self.geometry = geometry
         self.patch, self.seed, self.rank = patch, seed, rank
         self.index, self.real_sensor, self.ideal_share = index, real_sensor, ideal_share
         mix = mix or DataMix()
@@ -103,8 +107,9 @@ class SampleMaker:
         self.weights = DataMix(mix.procedural if photos + clips else 1.0, photos, clips).weights()
 
     def sample(self, step: int, item: int) -> tuple[np.ndarray, np.ndarray]:
-        """Item ``item`` of the batch of ``step``: ``(41, P, P) uint8`` spikes and
-        ``(5, P, P) float32`` ground truth at the block centres, augmented."""
+        """Item ``item`` of the batch of ``step``: ``(F, P, P) uint8`` spikes (the geometry's
+        window, 41 as published) and ``(blocks, P, P) float32`` ground truth at the block
+        centres, augmented."""
         rng = np.random.default_rng([self.seed, self.rank, step, item])
         kind = KINDS[int(rng.choice(len(KINDS), p=self.weights))]
         motion, brightness = str(rng.choice(MOTIONS)), str(rng.choice(BRIGHTNESSES))
@@ -123,8 +128,8 @@ class SampleMaker:
         if kind == "procedural":
             scene = random_scene(rng, p, p, motion, brightness, PROCEDURAL_KINDS)
         sensor = self.draw_sensor(rng)
-        spikes = simulate(scene, NET_WINDOW, sensor, rng)
-        return augment(spikes, ground_truth(scene, GT_FRAMES), rng)
+        spikes = simulate(scene, self.geometry.window_frames, sensor, rng)
+        return augment(spikes, ground_truth(scene, self.geometry.block_centres), rng)
 
     def draw_sensor(self, rng: np.random.Generator) -> SensorConfig:
         """Ideal with probability ``ideal_share``, else the real-like regime (module doc)."""
@@ -135,7 +140,7 @@ class SampleMaker:
         return self.real_sensor.jittered(rng)
 
     def batch(self, step: int, size: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(size, 41, P, P) float32`` spikes and ``(size, 5, P, P) float32`` truth."""
+        """``(size, F, P, P) float32`` spikes and ``(size, blocks, P, P) float32`` truth."""
         pairs = [self.sample(step, item) for item in range(size)]
         spikes = np.stack([np.ascontiguousarray(s, np.float32) for s, _ in pairs])
         truth = np.stack([np.ascontiguousarray(t, np.float32) for _, t in pairs])

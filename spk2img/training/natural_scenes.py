@@ -2,7 +2,7 @@
 layers, and real video clips with their own motion, interpolated in time.
 
 **Photos.** A crop of a photograph (scaled at random) is the background, seen through a
-:class:`~spk2img.core.scenes.Motion` (translation, rotation, zoom, a perspective-like
+:class:`~spk2img.sim.scenes.Motion` (translation, rotation, zoom, a perspective-like
 non-rigid flow) at a speed of the motion class (static, 0.03-0.3 or 0.5-3 px/frame). Zero to
 three foreground layers, each a crop of another photograph cut out by a soft-edged ellipse or
 polygon, move with motions of their own over it, so content is occluded and disoccluded.
@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from PIL import Image, ImageDraw
 
-from spk2img.core.scenes import (
+from spk2img.sim.scenes import (
     MEAN_RANGES,
     SPEED_RANGES,
     Motion,
@@ -39,7 +39,7 @@ from spk2img.core.scenes import (
     Scene,
     sample_bilinear,
 )
-from spk2img.core.windows import NET_WINDOW
+from spk2img.sim.simulator import FILM_FRAMES
 
 from .sources import to_linear
 
@@ -101,7 +101,7 @@ def draw_speed(rng: np.random.Generator, motion: str) -> float:
 class LayeredScene(Scene):
     """A background scene with foreground layers composited over it, back to front:
     ``I = I_below (1 - alpha) + content alpha`` per layer; each layer's content and alpha are
-    :class:`~spk2img.core.scenes.MovingImage` s sharing one motion."""
+    :class:`~spk2img.sim.scenes.MovingImage` s sharing one motion."""
 
     def __init__(self, background: Scene, layers: list[tuple[MovingImage, MovingImage]], meta):
         self.background, self.layers, self.meta = background, layers, meta
@@ -235,8 +235,8 @@ def clip_scene(
     probe = int(rng.integers(0, len(frames) - 1))
     motion_px = _mean_motion(dis_flow(crop(frames[probe]), crop(frames[probe + 1])))
     target = draw_speed(rng, motion)
-    per_interval = max(NET_WINDOW / available, motion_px / target) if target > 0 else 1e9
-    intervals = min(available, int(np.ceil(NET_WINDOW / per_interval)) + 1)
+    per_interval = max(FILM_FRAMES / available, motion_px / target) if target > 0 else 1e9
+    intervals = min(available, int(np.ceil(FILM_FRAMES / per_interval)) + 1)
     first = int(rng.integers(0, len(frames) - intervals))
     crops = [crop(frame) for frame in frames[first : first + intervals + 1]]
     if backwards:  # motion in either direction
@@ -246,7 +246,7 @@ def clip_scene(
     linear = np.stack([to_linear(c) for c in crops])
     gain = exposure_gain(linear[:, m:-m, m:-m], rng, brightness)
     linear = np.clip(linear * gain, 0, 1)
-    span = intervals * per_interval - NET_WINDOW
+    span = intervals * per_interval - FILM_FRAMES
     start = float(rng.uniform(0, span)) if target > 0 else 0.0
     speed = _mean_motion(forward) / per_interval
     meta = {"kind": "clip", "motion": motion, "speed": speed, "brightness": brightness}

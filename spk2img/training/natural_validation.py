@@ -1,5 +1,5 @@
 """The natural validation set: whole photographs and clips held out of training, filmed under
-both sensor regimes, scored like the procedural set (:mod:`spk2img.core.evaluation`).
+both sensor regimes, scored like the procedural set (:mod:`spk2img.evaluation.scoring`).
 
 Held out are whole sources, never crops: :data:`HELD_OUT_PHOTOS` and :data:`HELD_OUT_CLIPS`
 (chosen once for their variety: lattices, foliage, street signs, water, faces of buildings,
@@ -14,11 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.core.evaluation import KEY, MOTIONS, ValidationScene
-from spk2img.core.scenes import BRIGHTNESSES
-from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
-from spk2img.core.simulator import GT_FRAMES, SensorConfig, ground_truth, simulate
-from spk2img.core.windows import NET_WINDOW
+from spk2img.evaluation.scoring import MOTIONS, ValidationScene
+from spk2img.sim.scenes import BRIGHTNESSES
+from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
+from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, SensorConfig, ground_truth, simulate
 
 from .natural_scenes import clip_scene, photo_scene
 from .sources import FrameFolder, Photo, SourceIndex, load_clip, load_photo
@@ -60,7 +59,7 @@ def natural_validation_set(
 ) -> list[ValidationScene]:
     """For each held-out source under ``folders`` and each motion class, one scene (random
     brightness class, fixed seed) filmed once by each sensor regime (``ideal``, and ``fitted``:
-    the preset fitted to the real capture, :data:`~spk2img.core.sensor_fit.FITTED_PRESET`).
+    the preset fitted to the real capture, :data:`~spk2img.sim.sensor_fit.FITTED_PRESET`).
 
     Empty when ``folders`` hold none of the held-out sources."""
     sensors = sensors or {"ideal": SensorConfig.ideal(), "fitted": load_preset(FITTED_PRESET)}
@@ -76,10 +75,10 @@ def natural_validation_set(
             scene = photo_scene(rng, [photos[i], *layers], height, width, motion, brightness)
         else:
             scene = clip_scene(rng, load_clip(source), height, width, motion, brightness)
-        truth = ground_truth(scene, [GT_FRAMES[KEY]])[0]
+        truth = ground_truth(scene, [CENTER_FRAME])[0]
         for regime, sensor in sensors.items():
             spikes = simulate(
-                scene, NET_WINDOW, sensor, np.random.default_rng([NATURAL_SEED, i, j])
+                scene, FILM_FRAMES, sensor, np.random.default_rng([NATURAL_SEED, i, j])
             )
             scenes.append(ValidationScene(spikes, truth, motion, brightness, regime))
     return scenes

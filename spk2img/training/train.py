@@ -21,10 +21,8 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
-from spk2img.core.errors import InputError
-from spk2img.core.evaluation import baseline_scores, network_scorer, score, validation_set
-from spk2img.core.provenance import git_commit
-from spk2img.core.sensor_fit import FITTED_PRESET, load_preset
+from spk2img.errors import InputError
+from spk2img.evaluation.scoring import baseline_scores, network_scorer, score, validation_set
 from spk2img.model.checkpoint import (
     config_to_dict,
     load_checkpoint,
@@ -34,6 +32,8 @@ from spk2img.model.checkpoint import (
 )
 from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
+from spk2img.provenance import git_commit
+from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
 
 from .data import Batches, DataMix, SampleMaker, check_ideal_share
 from .loss import check_final_term, hierarchical_loss
@@ -188,7 +188,16 @@ def train(cfg: TrainConfig) -> dict:
     index = SourceIndex.scan(cfg.data, cfg.patch, HELD_OUT) if cfg.data else None
     real_sensor = load_preset(cfg.sensor_preset or FITTED_PRESET)
     mix = DataMix.parse(cfg.data_mix)
-    maker = SampleMaker(cfg.patch, cfg.seed, run.rank, mix, index, real_sensor, cfg.ideal_share)
+    maker = SampleMaker(
+        cfg.patch,
+        cfg.seed,
+        run.rank,
+        mix,
+        index,
+        real_sensor,
+        cfg.ideal_share,
+        model.config.geometry,
+    )
     log = _Log(run_dir / "metrics.jsonl") if run.main else None
     val_sets = {}
     if run.main:

@@ -36,7 +36,8 @@ def readyz(service: Service) -> Ready:
         raise service.unavailable()
     if service.pool.full(JOB_BYTES):
         raise service.busy()
-    return Ready(status="ready", device=service.model.device, provider=service.model.provider)
+    model = service.network.predict
+    return Ready(status="ready", device=model.device, provider=model.provider)
 
 
 @router.get(

@@ -11,10 +11,11 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query, Request
 
-from spk2img.core.framing import MEDIA_TYPE
-from spk2img.core.methods import method_plan, method_window
-from spk2img.core.spikes import frame_nbytes
-from spk2img.core.windows import CenterPlan
+from spk2img.io.spikes import frame_nbytes
+from spk2img.model.config import Geometry
+from spk2img.protocol.framing import MEDIA_TYPE
+from spk2img.runtime.methods import method_window
+from spk2img.runtime.windows import CenterPlan
 
 from ..duplex import FramesResponse
 from ..errors import RequestError
@@ -22,7 +23,7 @@ from ..inference import InferencePool
 from ..reconstruction import StreamJob, check_upload_size, frame_record_bytes, job_memory
 from ..schemas import ErrorDetail, ReconstructQuery
 from ..settings import ServiceSettings
-from ..state import ReadyService, ServedModel
+from ..state import ReadyService, ServedNetwork
 
 BODY_TYPE = "application/octet-stream"
 DUPLEX_HEADER = "X-Spk2img-Duplex"
@@ -71,7 +72,7 @@ async def reconstruct(
     query: Annotated[ReconstructQuery, Query()],
     request: Request,
     service: ReadyService,
-    model: ServedModel,
+    network: ServedNetwork,
 ) -> FramesResponse:
     """Reconstruct the uploaded stream at the requested centres, streaming each frame as soon as
     its window has arrived."""
@@ -79,7 +80,7 @@ async def reconstruct(
     _check_content_type(request.headers.get("content-type"))
     if query.quality != "best" and query.method != "net":
         raise RequestError(422, f"quality is for method net, not {query.method}")
-    plan = _plan(query, settings)
+    plan = _plan(query, settings, network.geometry)
     length = request.headers.get("content-length")
     response_bytes = settings.response_buffer_bytes  # unknown before a chunked upload ends
     if length is not None:
@@ -88,7 +89,7 @@ async def reconstruct(
         duplex = request.headers.get(DUPLEX_HEADER, "").strip() == "1"
         if response_bytes > settings.response_buffer_bytes and not duplex:
             raise RequestError(413, _over_buffer(response_bytes, settings))
-    cost = job_memory(query, settings, response_bytes)
+    cost = job_memory(query, settings, response_bytes, network.geometry)
     if settings.memory_budget_bytes and cost > settings.memory_budget_bytes:
         raise RequestError(
             422,
@@ -104,8 +105,7 @@ async def reconstruct(
             _refusal(admission, service.pool),
             {"Retry-After": str(settings.retry_after_seconds)},
         )
-    net = query.method == "net"
-    job = StreamJob(query, plan, settings, model if net else None, service.codec if net else None)
+    job = StreamJob(query, plan, settings, network if query.method == "net" else None)
     return FramesResponse(job, admission, settings, service.metrics)
 
 
@@ -134,18 +134,19 @@ def _check_content_type(content_type: str | None) -> None:
         raise RequestError(415, f"Content-Type must be {BODY_TYPE}, got {content_type!r}")
 
 
-def _plan(query: ReconstructQuery, settings: ServiceSettings) -> CenterPlan:
-    """The centre plan, after the size and window limits (raises 422)."""
+def _plan(query: ReconstructQuery, settings: ServiceSettings, geometry: Geometry) -> CenterPlan:
+    """The centre plan (``net``: the served network's ``geometry``), after the size and window
+    limits (raises 422)."""
     if query.height * query.width > settings.max_pixels:
         raise RequestError(
             422,
             f"{query.height}x{query.width} frames are over the limit of "
             f"{settings.max_pixels} pixels",
         )
-    window = method_window(query.method, query.window, query.binning, query.quality)
+    window = method_window(query.method, query.window, query.binning, query.quality, geometry)
     if window > settings.max_window:
         raise RequestError(422, f"window {window} is over the limit of {settings.max_window}")
-    return method_plan(query.method, query.centers, query.stride, query.window, query.binning)
+    return CenterPlan.parse(window, query.centers, query.stride)
 
 
 def _frames_in(length: int, query: ReconstructQuery, settings: ServiceSettings) -> int:

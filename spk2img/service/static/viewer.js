@@ -5,7 +5,8 @@
 
 (() => {
   const OCTET = "application/octet-stream";
-  const NET_WINDOW = 41;
+  // The served network's window in frames: GET v1/models says it (its geometry), before any run.
+  let netFrames = null;
   // A browser uploads the whole body before it reads the answer, so the service holds the frames
   // for it: up to response_buffer_bytes (32 MiB by default) for a Content-Length upload, else 413.
   // The page asks for at most this many bytes of frames a request and splits larger plans;
@@ -107,10 +108,11 @@
     return ui.method.value === "net" && ui.quality.value === "best";
   }
 
-  // The stream frames a network window spans: 41 merged frames of K, plus one when K is even
-  // (so that it stays centred).
+  // The stream frames a network window spans: the network's frames merged K at a time, plus one
+  // when K is even (so that it stays centred).
   function netWindow(binning) {
-    return (NET_WINDOW * binning) | 1;
+    if (netFrames === null) throw new Error("the service has not said its model's window yet: wait until it is ready");
+    return (netFrames * binning) | 1;
   }
 
   function positiveInt(input, name) {
@@ -881,6 +883,7 @@
       const models = await fetch("v1/models").then((r) => (r.ok ? r.json() : null));
       const ready = await fetch("readyz");
       const model = models?.models?.[0];
+      if (model?.geometry) netFrames = model.geometry.window_frames;
       const name = model ? `model ${model.name}` : "no model yet";
       ui.serviceStatus.textContent = `${name} · ${ready.ok ? "ready" : "not ready: " + (await errorDetail(ready))}`;
       if (!ready.ok) setTimeout(checkService, 2000);

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from spk2img.errors import InputError
 
 DEFAULT_HEIGHT = 250
 DEFAULT_WIDTH = 400

@@ -12,9 +12,10 @@ from itertools import product
 
 import numpy as np
 
-from spk2img.core.classical import tfi, tfp
-from spk2img.core.metrics import psnr, ssim
-from spk2img.core.simulator import SensorConfig, filmed_sample
+from spk2img.evaluation.metrics import psnr, ssim
+from spk2img.model.config import Geometry
+from spk2img.runtime.classical import tfi, tfp
+from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, GT_FRAMES, SensorConfig, filmed_sample
 
 VALIDATION_SEED = 987_654_321  # disjoint from training seeds (which are < 10**6 in practice)
 TEST_SEED = 123_456_789  # the model card's held-out test scenes, used by nothing else
@@ -22,13 +23,15 @@ MOTIONS = ("static", "slow", "fast")
 BRIGHTNESS = ("dim", "normal", "bright")
 SENSORS = ("ideal", "real", "fitted")
 """Noise-free integrate-and-fire; any real-like sensor; the preset fitted to a real capture."""
-TFP_WINDOWS = tuple(range(3, 42, 2))
-KEY = 2  # the key block's index among the five ground-truth block centres
+TFP_WINDOWS = tuple(range(3, FILM_FRAMES + 1, 2))
+"""The windows best-window TFP chooses from: every odd one up to the whole simulated window."""
+KEY = GT_FRAMES.index(CENTER_FRAME)
+"""The key block's index among the ground-truth block centres (2 of 5)."""
 
 
 @dataclass(frozen=True)
 class ValidationScene:
-    spikes: np.ndarray  # (41, H, W) uint8
+    spikes: np.ndarray  # (FILM_FRAMES, H, W) uint8
     truth: np.ndarray  # (H, W) float32, ground truth at the window's centre
     motion: str
     brightness: str
@@ -54,18 +57,19 @@ def validation_set(
 
 
 Reconstruct = Callable[[np.ndarray], np.ndarray]
-"""``(41, H, W) uint8`` window -> ``(H, W)`` float32 image at its centre frame 20."""
+"""``(FILM_FRAMES, H, W) uint8`` window -> ``(H, W)`` float32 image at its centre frame
+(:data:`~spk2img.sim.simulator.CENTER_FRAME`)."""
 
 
 def tfp_best_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """TFP with the window (odd, 3..41) that scores best against ``truth``: an oracle baseline."""
-    candidates = [tfp(spikes, [20], w)[0] for w in TFP_WINDOWS]
+    candidates = [tfp(spikes, [CENTER_FRAME], w)[0] for w in TFP_WINDOWS]
     return max(candidates, key=lambda image: psnr(image, truth))
 
 
 def tfi_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """TFI at the window's centre (its spike search spans the 41 frames)."""
-    return tfi(spikes, [20])[0]
+    return tfi(spikes, [CENTER_FRAME])[0]
 
 
 def score(
@@ -102,6 +106,11 @@ def baseline_scores(scenes: list[ValidationScene]) -> dict[str, dict]:
     return {"tfp_best": score(tfp_best_window, scenes), "tfi": score(tfi_window, scenes)}
 
 
-def network_scorer(predict: Callable[[np.ndarray], np.ndarray]):
-    """Adapt a batch predictor ``(B, 41, H, W) -> (B, H, W)`` to :func:`score`'s method shape."""
-    return lambda spikes, truth: predict(spikes[None].astype(np.float32))[0]
+def network_scorer(predict: Callable[[np.ndarray], np.ndarray], geometry: Geometry | None = None):
+    """Adapt a batch predictor ``(B, F, H, W) -> (B, H, W)`` to :func:`score`'s method shape:
+    it reads the centred ``F`` frames of each window (``geometry``: the network's; None: the one
+    ``predict`` carries, else the whole window)."""
+    geometry = geometry or getattr(predict, "geometry", None)
+    if geometry is None:
+        return lambda spikes, truth: predict(spikes[None].astype(np.float32))[0]
+    return lambda spikes, truth: predict(geometry.crop(spikes)[None].astype(np.float32))[0]

@@ -31,8 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .stream import Frame, Predictor, WindowedReconstructor, tfp_image
-from .windows import NET_WINDOW, CenterPlan, WindowError
+from spk2img.runtime.stream import Frame, Predictor, WindowedReconstructor, tfp_image
+from spk2img.runtime.windows import CenterPlan
 
 QUALITIES = ("best", "balanced", "fast")
 TILE = 16
@@ -48,7 +48,7 @@ CONTEXT = 16
 
 
 def check_quality(quality: str) -> str:
-    from .errors import InputError
+    from spk2img.errors import InputError
 
     if quality not in QUALITIES:
         raise InputError(f"unknown quality {quality!r}: choose one of {', '.join(QUALITIES)}")
@@ -104,11 +104,10 @@ def balanced_image(window: np.ndarray, predict: Predictor) -> tuple[np.ndarray, 
 
 
 class BalancedStream(WindowedReconstructor):
-    """``quality=balanced``: each due 41-frame window through :func:`balanced_image`."""
+    """``quality=balanced``: each due window (the network's frames, ``plan.window``) through
+    :func:`balanced_image`."""
 
     def __init__(self, height: int, width: int, plan: CenterPlan, predict: Predictor):
-        if plan.window != NET_WINDOW:
-            raise WindowError(f"the network needs a {NET_WINDOW}-frame window, got {plan.window}")
         super().__init__(height, width, plan)
         self.predict = predict
         self.network_share: list[float] = []

@@ -21,11 +21,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .light import SPIKE_RATE
-from .scenes import Scene, random_scene
-from .windows import NET_WINDOW
+from spk2img.io.light import SPIKE_RATE
+from spk2img.model.config import PUBLISHED_GEOMETRY
+from spk2img.sim.scenes import Scene, random_scene
 
-GT_FRAMES = (6, 13, 20, 27, 34)  # block centres k-14, k-7, k, k+7, k+14 of a 41-frame window
+FILM_FRAMES = PUBLISHED_GEOMETRY.window_frames
+"""Frames of every simulated window (training samples, validation, test and benchmark sets): the
+published window, 41; a network with a shorter window reads their centred crop."""
+CENTER_FRAME = PUBLISHED_GEOMETRY.half
+"""The frame a simulated window is reconstructed at: its centre, 20."""
+GT_FRAMES = PUBLISHED_GEOMETRY.block_centres
+"""The block centres of the published window, 6, 13, 20, 27 and 34: where training's ground
+truth is taken."""
 RENDER_BUDGET = 2**20  # scene samples rendered at once (substeps x pixels x frames)
 
 
@@ -76,7 +83,7 @@ class SensorConfig:
     def jittered(self, rng: np.random.Generator) -> SensorConfig:
         """This sensor with each noise's strength scaled by a log-uniform factor in [1/2, 2],
         except the dark current, drawn uniformly in [0, 2 x] its value (a fitted preset holds
-        the middle of what its capture allows, :mod:`spk2img.core.sensor_fit`)."""
+        the middle of what its capture allows, :mod:`spk2img.sim.sensor_fit`)."""
 
         def factor() -> float:
             return float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
@@ -217,4 +224,4 @@ def filmed_sample(
     """:func:`training_sample` (same draws from ``rng``, same arrays) and the sensor it used."""
     scene = random_scene(rng, height, width, motion, brightness)
     sensor = sensor or SensorConfig.random(rng)
-    return simulate(scene, NET_WINDOW, sensor, rng), ground_truth(scene, GT_FRAMES), sensor
+    return simulate(scene, FILM_FRAMES, sensor, rng), ground_truth(scene, GT_FRAMES), sensor

@@ -2,9 +2,10 @@
 
 The network was trained on streams whose pixels fire up to 0.6 spikes a frame; in dim light
 (a few hundredths of a spike a frame) its 41-frame window holds about one spike a pixel and
-its image is mostly noise. Merging ``K`` frames into one (:func:`~spk2img.core.stream.bin_frames`)
-makes every pixel fire about ``K`` times as often per network frame. :func:`suggest_binning`
-picks ``K`` so that the stream's mean rate reaches :data:`TARGET_RATE` while its brightest
+its image is mostly noise. Merging ``K`` frames into one
+(:func:`~spk2img.runtime.stream.bin_frames`) makes every pixel fire about ``K`` times as often per
+network frame. :func:`suggest_binning` picks ``K`` so that the stream's mean rate reaches
+:data:`TARGET_RATE` while its brightest
 pixels stay below saturation, within the stream's length.
 """
 
@@ -12,9 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .light import SPIKE_RATE
-from .spikes import as_spike_array
-from .windows import MAX_BINNING, NET_WINDOW
+from spk2img.io.light import SPIKE_RATE
+from spk2img.io.spikes import as_spike_array
+from spk2img.model.config import PUBLISHED_GEOMETRY
+from spk2img.runtime.windows import MAX_BINNING
 
 TARGET_RATE = 0.1
 """Mean spikes per pixel per network frame that binning aims at: on still held-out photos
@@ -35,21 +37,24 @@ def firing_rates(spikes) -> np.ndarray:
     return sample.mean(axis=0, dtype=np.float64)
 
 
-def suggest_binning(spikes) -> int:
-    """The ``binning`` for a ``(T, H, W)`` 0/1 stream: :func:`binning_for_rates` of its
+def suggest_binning(spikes, window_frames: int = PUBLISHED_GEOMETRY.window_frames) -> int:
+    """The ``binning`` for a ``(T, H, W)`` 0/1 stream and a network reading ``window_frames``
+    frames (its geometry's; the published 41 by default): :func:`binning_for_rates` of its
     :func:`firing_rates`."""
-    return binning_for_rates(firing_rates(spikes), len(spikes))
+    return binning_for_rates(firing_rates(spikes), len(spikes), window_frames)
 
 
-def binning_for_rates(rates: np.ndarray, n_frames: int) -> int:
+def binning_for_rates(
+    rates: np.ndarray, n_frames: int, window_frames: int = PUBLISHED_GEOMETRY.window_frames
+) -> int:
     """The ``binning`` for a stream of ``n_frames`` frames whose pixels fire ``rates`` ``(H, W)``
     spikes a frame: 1 for a normally lit one; for a dim one the ``K`` that lifts the mean rate
     to :data:`TARGET_RATE` spikes a network frame, lowered until the
     :data:`BRIGHT_PERCENTILE` th percentile pixel fires under ``SPIKE_RATE`` a frame once
-    merged, and until the stream holds one window of ``41 * K`` frames."""
+    merged, and until the stream holds one window of ``window_frames * K`` frames."""
     mean, bright = float(rates.mean()), float(np.percentile(rates, BRIGHT_PERCENTILE))
     binning = int(TARGET_RATE / mean) if mean > 0 else MAX_BINNING
     if bright > 0:
         binning = min(binning, int(SPIKE_RATE / bright))
-    binning = min(binning, n_frames // NET_WINDOW, MAX_BINNING)
+    binning = min(binning, n_frames // window_frames, MAX_BINNING)
     return max(1, binning)

@@ -1,7 +1,8 @@
 """Choosing output centres and the frame windows around them (one window selector for all).
 
 A centre ``k`` with window ``w`` (odd) needs frames ``k - w//2 .. k + w//2`` of a stream of
-``T`` frames (docs/format.md: the network's window is 41 frames, ``k-20 .. k+20``).
+``T`` frames; the network's window is its geometry's
+(:attr:`~spk2img.model.config.Geometry.window_frames`, 41 frames ``k-20 .. k+20`` as published).
 """
 
 from __future__ import annotations
@@ -10,11 +11,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .errors import InputError
+from spk2img.errors import InputError
 
-NET_WINDOW = 41
 MAX_BINNING = 64
-"""The most stream frames merged into one network frame (a window of 41 x 64 = 2,624 frames)."""
+"""The most stream frames merged into one network frame (a window of 41 x 64 = 2,624 frames
+for the published network)."""
 
 
 class WindowError(InputError):
@@ -29,18 +30,18 @@ def check_window(window: int) -> int:
 
 
 def check_binning(binning: int) -> int:
-    """Return ``binning`` (stream frames merged into each of the network's 41) if it is an
+    """Return ``binning`` (stream frames merged into each of the network's frames) if it is an
     integer in 1 .. :data:`MAX_BINNING`, else raise :class:`WindowError`."""
     if int(binning) != binning or not 1 <= binning <= MAX_BINNING:
         raise WindowError(f"binning must be an integer from 1 to {MAX_BINNING}, got {binning}")
     return int(binning)
 
 
-def net_window(binning: int = 1) -> int:
-    """Stream frames the network's window spans when each of its 41 frames merges ``binning``
-    stream frames: ``41 * binning``, plus one for an even ``binning`` so that the window stays
-    centred (odd); that extra last frame is not used."""
-    return NET_WINDOW * check_binning(binning) | 1
+def net_window(window_frames: int, binning: int = 1) -> int:
+    """Stream frames a network's window spans when each of its ``window_frames`` (odd) frames
+    merges ``binning`` stream frames: ``window_frames * binning``, plus one for an even
+    ``binning`` so that the window stays centred (odd); that extra last frame is not used."""
+    return check_window(window_frames) * check_binning(binning) | 1
 
 
 def parse_centers(text: str) -> list[int]:

@@ -1,7 +1,7 @@
 """Streaming reconstruction: feed frames as they arrive, get ``(centre, image)`` pairs back.
 
 One implementation serves the CLI (which reads files in chunks), the service (which decodes
-uploads incrementally) and the array helpers in :mod:`spk2img.core.classical`, so local and
+uploads incrementally) and the array helpers in :mod:`spk2img.runtime.classical`, so local and
 remote results are the same by construction. Memory stays bounded by the window, not the
 stream: a reconstructor keeps the last ``window`` frames at most.
 
@@ -16,9 +16,9 @@ from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
-from .light import SPIKE_RATE
-from .spikes import as_spike_array
-from .windows import NET_WINDOW, CenterPlan, WindowError, net_window
+from spk2img.io.light import SPIKE_RATE
+from spk2img.io.spikes import as_spike_array
+from spk2img.runtime.windows import CenterPlan, WindowError
 
 Frame = tuple[int, np.ndarray]  # (centre index, (H, W) float32 linear intensity in [0, 1])
 
@@ -27,7 +27,7 @@ class StreamingReconstructor(ABC):
     """Base class: frames in by :meth:`push`, finished centres out; :meth:`close` ends the stream.
 
     Subclasses see every frame once, in order, through :meth:`_on_frame`, and report finished
-    centres. ``window`` is how many frames a centre needs (TFP's window, 41 for the network).
+    centres. ``window`` is how many frames a centre needs (TFP's window, or the network's).
     """
 
     def __init__(self, height: int, width: int, plan: CenterPlan):
@@ -121,17 +121,20 @@ def tfp_image(count: np.ndarray, window: int) -> np.ndarray:
 
 
 Predictor = Callable[[np.ndarray], np.ndarray]
-"""``(B, 41, H, W) float32`` 0/1 windows -> ``(B, H, W) float32`` linear intensity in [0, 1]."""
+"""``(B, F, H, W) float32`` 0/1 windows of the network's ``F`` frames (its geometry's
+``window_frames``, 41 as published) -> ``(B, H, W) float32`` linear intensity in [0, 1]."""
 
 
 class NetStream(WindowedReconstructor):
-    """The network on every due 41-frame window, batched ``max_batch`` windows at a time.
+    """The network on every due window, batched ``max_batch`` windows at a time.
 
-    With ``binning`` K > 1 (dim streams), the window spans :func:`net_window` (K) stream frames
-    and each of the network's 41 frames is the union of K consecutive ones (a spike where any
-    fired), as a camera with a K times longer frame would film it: a dim pixel fires K times
-    as often per network frame, so the network sees the light it was trained on; the image is
-    divided by K back to the stream's intensity scale (pixels brighter than 1/K saturate).
+    ``plan.window`` is the stream frames a window spans: the network's ``F`` frames
+    (:func:`~spk2img.runtime.windows.net_window`). With ``binning`` K > 1 (dim streams) it spans
+    ``F * K`` (+1) stream frames and each of the network's frames is the union of K consecutive
+    ones (a spike where any fired), as a camera with a K times longer frame would film it: a dim
+    pixel fires K times as often per network frame, so the network sees the light it was trained
+    on; the image is divided by K back to the stream's intensity scale (pixels brighter than 1/K
+    saturate).
     """
 
     def __init__(
@@ -143,11 +146,6 @@ class NetStream(WindowedReconstructor):
         max_batch: int = 1,
         binning: int = 1,
     ):
-        if plan.window != net_window(binning):
-            raise WindowError(
-                f"the network with binning {binning} needs a {net_window(binning)}-frame "
-                f"window, got {plan.window}"
-            )
         super().__init__(height, width, plan)
         self.predict, self.max_batch, self.binning = predict, max_batch, binning
         self._batch: list[tuple[int, np.ndarray]] = []
@@ -168,21 +166,22 @@ class NetStream(WindowedReconstructor):
         return list(zip(centers, images, strict=True))
 
 
-def net_input(spikes, center: int, binning: int = 1) -> np.ndarray:
-    """The network's ``(41, H, W)`` 0/1 frames for centre ``center`` of a ``(T, H, W)`` stream
-    (an array or a memory-mapped stream): its :func:`net_window` frames, merged by
-    :func:`bin_frames`."""
-    half = net_window(binning) // 2
+def net_input(spikes, center: int, window: int, binning: int = 1) -> np.ndarray:
+    """The network's ``(F, H, W)`` 0/1 frames for centre ``center`` of a ``(T, H, W)`` stream
+    (an array or a memory-mapped stream): the ``window`` stream frames around it
+    (:func:`~spk2img.runtime.windows.net_window`), merged by :func:`bin_frames`."""
+    half = window // 2
     return bin_frames(np.asarray(spikes[center - half : center + half + 1]), binning)
 
 
 def bin_frames(window: np.ndarray, binning: int) -> np.ndarray:
-    """The network's ``(41, H, W)`` frames from a ``(net_window(binning), H, W)`` 0/1 window:
+    """The network's ``(F, H, W)`` frames from a ``(net_window(F, binning), H, W)`` 0/1 window:
     frame ``j`` is 1 where any of stream frames ``j * binning .. (j + 1) * binning - 1`` fired
     (the window's extra last frame, for an even ``binning``, is dropped)."""
     if binning == 1:
         return window
-    merged = window[: NET_WINDOW * binning].reshape(NET_WINDOW, binning, *window.shape[1:])
+    frames = len(window) // binning
+    merged = window[: frames * binning].reshape(frames, binning, *window.shape[1:])
     return merged.max(axis=1)
 
 
@@ -249,7 +248,7 @@ def run_stream(recon: StreamingReconstructor, chunks: Iterable[np.ndarray]) -> I
 
 def frame_chunks(spikes, chunk: int = 256) -> Iterator[np.ndarray]:
     """Slices of ``chunk`` frames of a ``(T, H, W)`` array or memory-mapped stream, in order,
-    as ``uint8``; a value other than 0/1 raises :class:`~spk2img.core.spikes.SpikeFormatError`
+    as ``uint8``; a value other than 0/1 raises :class:`~spk2img.io.spikes.SpikeFormatError`
     (never cast: 2 or 0.5 is not a spike)."""
     for start in range(0, len(spikes), chunk):
         yield as_spike_array(np.asarray(spikes[start : start + chunk]))

@@ -3,7 +3,7 @@
 A :class:`BlockCodec` turns one block into its *code* (feature pyramid and offset-conv terms,
 :mod:`spk2img.model.block_split` has the layout) and five codes into an image.
 :class:`OnnxBlockCodec` runs the exported encoder and head graphs with onnxruntime (no torch);
-``spk2img.model.predictor.TorchPredictor`` runs the same split in PyTorch.
+``spk2img.runtime.torch_backend.TorchPredictor`` runs the same split in PyTorch.
 """
 
 from __future__ import annotations
@@ -15,8 +15,10 @@ from typing import Protocol
 
 import numpy as np
 
-from .errors import InputError
-from .onnx_backend import create_session, model_path, run_session
+from spk2img.errors import InputError
+from spk2img.model.block_code import code_names
+from spk2img.model.config import Geometry
+from spk2img.runtime.onnx_backend import create_session, model_path, run_session
 
 PART_FILES = {"encoder": ".encoder.onnx", "head": ".head.onnx"}
 """Suffixes that replace ``.onnx`` of the one-shot graph for its two parts."""
@@ -25,24 +27,11 @@ BlockCode = tuple[np.ndarray, ...]
 """One block's code: :func:`code_names` order, ``(c, h_l, w_l)`` float32 each."""
 
 
-CODE_ROLES = ("feat", "nbr", "key")
-"""A block code's parts: feature pyramid, offset-conv terms as a neighbour and as the key."""
-
-
-def code_names(levels: int) -> list[str]:
-    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``."""
-    return [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
-
-
 class BlockCodec(Protocol):
     """Block encoder and align-and-fuse head of one network (batch 1)."""
 
-    block_frames: int
-    """Frames of a block (13)."""
-    block_stride: int
-    """Frames between the starts of a window's consecutive blocks (7)."""
-    num_blocks: int
-    """Blocks of a window (5); the middle one is the key."""
+    geometry: Geometry
+    """The network's window and blocks (13-frame blocks 7 apart, five a window, as published)."""
 
     def encode(self, block: np.ndarray) -> BlockCode:
         """``(block_frames, H, W)`` 0/1 spikes -> the block's code."""
@@ -67,7 +56,7 @@ class OnnxBlockCodec:
         model: the one-shot graph (default: the shipped model); its parts are found by
             :func:`block_graph_paths`.
         threads: onnxruntime intra-op threads of each session (None: onnxruntime's default).
-        device: where both graphs run (:data:`~spk2img.core.onnx_backend.DEVICES`).
+        device: where both graphs run (:data:`~spk2img.runtime.onnx_backend.DEVICES`).
         io_binding: run through onnxruntime's IO binding (default: on a GPU).
 
     Raises :class:`InputError` when a part is missing or the parts hold other weights than
@@ -98,11 +87,8 @@ class OnnxBlockCodec:
                 "(weights_sha256 differs): export them again together"
             )
         self.metadata = meta[0]
-        config = json.loads(self.metadata["config"])
-        self.block_frames = int(config["block_frames"])
-        self.block_stride = int(config["block_stride"])
-        self.num_blocks = int(config["num_blocks"])
-        self.names = code_names(int(config["pyramid_levels"]))
+        self.geometry = Geometry.from_metadata(self.metadata)
+        self.names = code_names(int(json.loads(self.metadata["config"])["pyramid_levels"]))
 
     def encode(self, block: np.ndarray) -> BlockCode:
         feeds = {"block": np.ascontiguousarray(block[None], np.float32)}
@@ -110,7 +96,7 @@ class OnnxBlockCodec:
         return tuple(out[0] for out in outputs)
 
     def head(self, codes: Sequence[BlockCode], height: int, width: int) -> np.ndarray:
-        feeds = head_inputs(codes, self.names, self.num_blocks)
+        feeds = head_inputs(codes, self.names, self.geometry.num_blocks)
         (image,) = run_session(self.parts["head"], feeds, [self.image_name], self.io_binding)
         return image[0, 0, :height, :width]
 

@@ -2,7 +2,7 @@
 
 :func:`create_session` is the one place that turns a *device* into onnxruntime execution
 providers and session options; the one-shot model (:class:`OnnxModel`), the block encoder and
-head (:class:`~spk2img.core.block_model.OnnxBlockCodec`), the service and the benchmark all
+head (:class:`~spk2img.runtime.block_codec.OnnxBlockCodec`), the service and the benchmark all
 create their sessions through it.
 
 Devices (docs/gpu.md):
@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from spk2img.errors import InputError
+from spk2img.model.config import Geometry
 
 DEFAULT_MODEL = "spk2img-default.onnx"
 
@@ -78,6 +79,21 @@ def graph_metadata(path: str | Path) -> dict[str, str]:
     (a one-thread CPU session from :func:`create_session`)."""
     session = create_session(path, threads=1).session
     return dict(session.get_modelmeta().custom_metadata_map)
+
+
+def graph_geometry(metadata: dict[str, str], input_shape: list) -> Geometry:
+    """The geometry of a graph: the one its ``config`` metadata records (spk2img's exports), else,
+    for a graph exported elsewhere, one block of the frames its input ``(B, F, H, W)`` fixes;
+    :class:`InputError` when neither says how many frames it reads."""
+    if "config" in metadata:
+        return Geometry.from_metadata(metadata)
+    frames = input_shape[1] if len(input_shape) == 4 else None
+    if not isinstance(frames, int) or frames < 1 or frames % 2 == 0:
+        raise InputError(
+            "the graph records no spk2img config and its input (B, F, H, W) does not fix an odd "
+            f"number of frames F (input shape {input_shape}): export it with spk2img export"
+        )
+    return Geometry(block_frames=frames, block_stride=1, num_blocks=1)
 
 
 def model_path(model: str | Path | None) -> Path:
@@ -268,13 +284,14 @@ def run_session(
 
 
 class OnnxModel:
-    """An ONNX reconstruction graph: ``(B, 41, H, W)`` 0/1 float32 -> ``(B, H, W)`` float32.
+    """An ONNX reconstruction graph: ``(B, F, H, W)`` 0/1 float32 -> ``(B, H, W)`` float32.
 
     ``threads`` sets onnxruntime's intra-op threads (None: onnxruntime's default); ``device``
     is one of :data:`DEVICES` (:func:`create_session`); ``io_binding`` (default: on a GPU)
     runs through onnxruntime's IO binding (:func:`run_session`). The graph's batch axis is
     dynamic: one call may reconstruct many centres. ``metadata`` holds the graph's
-    ``metadata_props`` (name, version, config, sha256 …); ``device``, ``provider`` and
+    ``metadata_props`` (name, version, config, sha256 …); ``geometry`` the frames ``F`` it
+    reads and their blocks (:func:`graph_geometry`); ``device``, ``provider`` and
     ``device_note`` say where it runs.
     """
 
@@ -291,6 +308,7 @@ class OnnxModel:
         self.input_name = self.session.get_inputs()[0].name
         self.output_name = self.session.get_outputs()[0].name
         self.metadata = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.geometry = graph_geometry(self.metadata, self.session.get_inputs()[0].shape)
         self.io_binding = self.device != "cpu" if io_binding is None else io_binding
 
     @property
@@ -309,7 +327,7 @@ class OnnxModel:
         return self.runner.note
 
     def __call__(self, windows: np.ndarray) -> np.ndarray:
-        """Reconstruct ``(B, 41, H, W)`` windows into ``(B, H, W)`` linear intensity in [0, 1]."""
+        """Reconstruct ``(B, F, H, W)`` windows into ``(B, H, W)`` linear intensity in [0, 1]."""
         feeds = {self.input_name: np.ascontiguousarray(windows, np.float32)}
         (out,) = run_session(self.runner, feeds, [self.output_name], self.io_binding)
         return out[:, 0]

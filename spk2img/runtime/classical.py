@@ -1,8 +1,8 @@
 """Classical reconstructions (docs/format.md) on whole arrays: TFP and TFI, linear [0, 1] float32.
 
-Both run the streaming implementations of :mod:`spk2img.core.stream` over ``spikes`` — anything
+Both run the streaming implementations of :mod:`spk2img.runtime.stream` over ``spikes`` — anything
 sliceable by frames with a ``(T, H, W)`` shape (an array or a memory-mapped
-:class:`~spk2img.core.spikes.DatStream`) — so arrays, files and HTTP uploads share one code path.
+:class:`~spk2img.io.spikes.DatStream`) — so arrays, files and HTTP uploads share one code path.
 Results come back for the sorted, de-duplicated centres.
 """
 
@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .stream import TFIStream, TFPStream, collect, frame_chunks, run_stream
-from .windows import CenterPlan
+from spk2img.runtime.stream import TFIStream, TFPStream, collect, frame_chunks, run_stream
+from spk2img.runtime.windows import CenterPlan
 
 
 def tfp(spikes, centers: Sequence[int], window: int) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 The capture is ``(T, H, W)`` 0/1 spikes of a scene that does not move. Per pixel, the firing
 rate ``r`` (spikes/frame) and the inter-spike intervals (ISIs) are measured, and the four noises
-of :class:`~spk2img.core.simulator.SensorConfig` are estimated as follows.
+of :class:`~spk2img.sim.simulator.SensorConfig` are estimated as follows.
 
 - **Hot pixels**: pixels whose rate exceeds the median of their 8 neighbours by more than
   ``max(HOT_MIN_EXCESS, HOT_SIGMAS x`` the robust spread of that excess over all pixels);
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .simulator import SensorConfig
+from spk2img.sim.simulator import SensorConfig
 
 FITTED_PRESET = Path(__file__).resolve().parents[1] / "assets" / "sensors" / "vidar-fitted.json"
 """The preset fitted to the real PKU capture this project tests on (docs/sensor.md)."""
