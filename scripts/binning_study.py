@@ -2,7 +2,7 @@
 
 ``python scripts/binning_study.py --data ../shared/data/train [--model default] [--rates
 0.015,0.03,0.06] [--json OUT.json]`` films the first six held-out photographs of the natural
-validation (:data:`~spk2img.training.natural_validation.HELD_OUT_PHOTOS`; centre crops of
+validation (:data:`~spk2img.evaluation.natural_validation.HELD_OUT_PHOTOS`; centre crops of
 160x160, still, scaled to a mean firing rate) with the noise-free and the fitted sensor for
 329 frames (41 x 8 + 1), reconstructs the middle frame with the shipped model at binning
 1, 2, 3, 4, 6, 8 and with :func:`~spk2img.suggest_binning`'s choice, with TFP over 41 and over
@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.metrics import psnr
+from spk2img.evaluation.natural_validation import find_held_out
 from spk2img.io.light import SPIKE_RATE
 from spk2img.model.config import PUBLISHED_GEOMETRY
 from spk2img.runtime.binning import suggest_binning
@@ -30,8 +31,7 @@ from spk2img.runtime.windows import net_window
 from spk2img.sim.scenes import StillScene
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.sim.simulator import SensorConfig, simulate
-from spk2img.training.natural_validation import find_held_out
-from spk2img.training.sources import load_photo
+from spk2img.sim.sources import load_photo
 
 BINNINGS = (1, 2, 3, 4, 6, 8)
 SIDE = 160

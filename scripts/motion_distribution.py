@@ -9,10 +9,10 @@ from collections import defaultdict
 
 import numpy as np
 
+from spk2img.evaluation.natural_validation import HELD_OUT
+from spk2img.sim.natural_scenes import MAX_LAYERS, clip_scene, photo_scene
 from spk2img.sim.scenes import MOTIONS
-from spk2img.training.natural_scenes import MAX_LAYERS, clip_scene, photo_scene
-from spk2img.training.natural_validation import HELD_OUT
-from spk2img.training.sources import SourceIndex, load_clip, load_photo
+from spk2img.sim.sources import SourceIndex, load_clip, load_photo
 
 
 def main() -> None:

@@ -24,6 +24,7 @@ from typing import NamedTuple, TypeAlias
 
 import numpy as np
 
+from spk2img.errors import InputError
 from spk2img.io import spikes as _spikes
 from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
 from spk2img.model.config import PUBLISHED_GEOMETRY, Geometry
@@ -158,9 +159,12 @@ class Reconstructor:
         self.method, self.quality = check_method(method), check_quality(quality)
         method_window(method, window, binning, quality)  # checks them before a model loads
         self.binning = binning
+        runs_network = method == "net" and quality != "fast"
+        if device != "cpu" and not runs_network:
+            raise InputError(f"device {device!r} is for method net with quality best or balanced")
         self.network: LoadedNetwork | None = None
         """The loaded network (``method="net"`` unless quality ``"fast"``)."""
-        if method == "net" and quality != "fast":
+        if runs_network:
             self.network = load_network(
                 model,
                 backend=backend,

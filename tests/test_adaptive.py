@@ -111,4 +111,4 @@ def test_cli_tiers(tmp_path, capsys):
     np.testing.assert_array_equal(frames["balanced"], frames["tfp"])  # static and bright
     bad = ["reconstruct", str(source), "--out", str(tmp_path / "x.npz"), "--method", "tfi"]
     assert main([*bad, "--quality", "balanced"]) == 2
-    assert "--quality is for --method net" in capsys.readouterr().err
+    assert "quality is for method net" in capsys.readouterr().err

@@ -17,11 +17,11 @@ from spk2img.bench.cases import SCENE_CLASSES, benchmark_set
 from spk2img.bench.natural import natural_set
 from spk2img.bench.rows import BACKENDS, NetRow, TfiRow, TfpRow, row_from_json, row_to_json
 from spk2img.bench.runner import QUICK
-from spk2img.bench.scores import TFP_WINDOWS, best_tfp_window, quality
+from spk2img.bench.scores import best_tfp_window, quality
 from spk2img.bench.worker import peak_rss_mib
 from spk2img.cli import main
 from spk2img.evaluation.metrics import psnr
-from spk2img.evaluation.scoring import score_images
+from spk2img.evaluation.scoring import TFP_WINDOWS, score_images
 from spk2img.runtime.classical import tfp
 from spk2img.sim.simulator import CENTER_FRAME
 

@@ -145,8 +145,8 @@ def test_cli_binning_auto_and_the_dim_stream_note(tmp_path, capsys, dim_still_sc
 @pytest.mark.parametrize(
     ("extra", "words"),
     [
-        (["--binning", "2", "--method", "tfp"], "--binning is for --method net"),
-        (["--binning", "2", "--quality", "balanced"], "--quality best"),
+        (["--binning", "2", "--method", "tfp"], "binning is for method net"),
+        (["--binning", "2", "--quality", "balanced"], "binning is for quality best"),
         (["--binning", "6"], "no full 247-frame window"),
     ],
 )

@@ -86,6 +86,7 @@ def stream() -> np.ndarray:
 def _whole_windows(model_path, spikes, centers) -> np.ndarray:
     """The one-shot graph on each centre's 27 frames, cut here by hand."""
     windows = np.stack([spikes[k - 13 : k + 14] for k in centers]).astype(np.float32)
+    assert windows.shape[1] == 27
     return OnnxModel(model_path, threads=1)(windows)
 
 

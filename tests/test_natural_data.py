@@ -11,17 +11,16 @@ from PIL import Image
 
 from spk2img.cli import main
 from spk2img.evaluation.metrics import psnr
-from spk2img.sim.scenes import PROCEDURAL_KINDS
-from spk2img.sim.simulator import GT_FRAMES, ground_truth
-from spk2img.training.data import DataMix, SampleMaker
-from spk2img.training.natural_scenes import (
+from spk2img.sim.natural_scenes import (
     CLIP_MARGIN,
     ClipScene,
     clip_scene,
     dis_flow,
     photo_scene,
 )
-from spk2img.training.sources import (
+from spk2img.sim.scenes import PROCEDURAL_KINDS
+from spk2img.sim.simulator import GT_FRAMES, ground_truth
+from spk2img.sim.sources import (
     FrameFolder,
     SourceIndex,
     VideoFile,
@@ -30,6 +29,7 @@ from spk2img.training.sources import (
     read_video,
     to_linear,
 )
+from spk2img.training.data import DataMix, SampleMaker
 
 RNG = np.random.default_rng(0)
 

@@ -72,18 +72,21 @@ def shipped() -> Weights | None:
     return Weights("shipped", DEFAULT_CHECKPOINT, trained=True, onnx=onnx)
 
 
-def net_rows(weights: Weights, directory: Path) -> tuple[list[NetRow], dict[str, str]]:
-    """A row per backend of :data:`~spk2img.bench.rows.BACKENDS` for ``weights``, with the
-    ONNX graphs made in ``directory``; and the backends whose graph could not be made, with why.
+def net_rows(
+    weights: Weights, directory: Path, backends: tuple[str, ...] = tuple(BACKENDS)
+) -> tuple[list[NetRow], dict[str, str]]:
+    """A row per backend of ``backends`` (:data:`~spk2img.bench.rows.BACKENDS`) for ``weights``,
+    with the ONNX graphs made in ``directory``; and the backends whose graph could not be made,
+    with why.
 
     The fp32 graphs come from :func:`~spk2img.export.pipeline.export_verified` (export, then
     torch parity); the int8 and fp16 ones from
     :func:`~spk2img.export.quantize.reduce_precision` of the fp32 grid_sample graph (the
     benchmark measures their error itself).
     """
-    paths = {"torch": weights.checkpoint}
+    paths = {"torch": weights.checkpoint} if "torch" in backends else {}
     failed = {}
-    for backend in BACKENDS:
+    for backend in backends:
         if backend == "torch":
             continue
         path = directory / f"{weights.name}-{backend}.onnx"

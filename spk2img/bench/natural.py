@@ -1,5 +1,5 @@
 """The natural validation in the benchmark: training's held-out photographs and clips
-(:mod:`spk2img.training.natural_validation`), found under the folders of ``--data``, each
+(:mod:`spk2img.evaluation.natural_validation`), found under the folders of ``--data``, each
 filmed by the noise-free sensor and by the sensor fitted to a real capture. Every scored row is
 also scored there, per sensor regime: the figures that predict real-video quality, at the size
 and seeds of training's validation, so they equal the model cards' and training logs'."""
@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.errors import InputError
-from spk2img.evaluation.scoring import ValidationScene, baseline_scores
-from spk2img.training.natural_validation import (
+from spk2img.evaluation.natural_validation import (
     HELD_OUT_CLIPS,
     HELD_OUT_PHOTOS,
     find_held_out,
     natural_validation_set,
 )
+from spk2img.evaluation.scoring import ValidationScene, baseline_scores
 
 from .cases import save_spikes
 

@@ -19,7 +19,7 @@ from spk2img.evaluation.scoring import score_images
 from . import artifacts, gpu
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
 from .natural import NATURAL_SIZE, NaturalSet, natural_set
-from .rows import NetRow, Row, TfiRow, TfpRow, row_to_json
+from .rows import BACKENDS, NetRow, Row, TfiRow, TfpRow, row_to_json
 from .scores import best_tfp_window, max_abs_error, quality
 from .service_load import service_benchmark
 from .streaming import stream_benchmark, tiers_benchmark
@@ -52,6 +52,9 @@ class Scale:
     """Frames of the stream of the streaming benchmark."""
     natural_size: tuple[int, int] = NATURAL_SIZE
     """Frame size (height, width) of the natural validation (with ``--data``)."""
+    trained_backends: tuple[str, ...] = tuple(BACKENDS)
+    """Backends the trained weights (the shipped model, ``--checkpoint``) run on; the random
+    members run on every backend."""
 
 
 FULL = Scale(
@@ -71,6 +74,7 @@ QUICK = Scale(
     service_requests=8,
     stream_frames=90,
     natural_size=(32, 48),
+    trained_backends=("torch", "onnx"),  # the shipped graph as it is: no export, no quantizing
 )
 
 
@@ -331,7 +335,8 @@ def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> P
     weights += [artifacts.Weights(name, path, trained=True) for name, path in options.trained]
     for w in weights:
         log(f"exporting {w.name}")
-        rows, failed = artifacts.net_rows(w, work)
+        backends = options.scale.trained_backends if w.trained else tuple(BACKENDS)
+        rows, failed = artifacts.net_rows(w, work, backends)
         items += rows
         for backend, reason in failed.items():
             log(f"export of {w.name} for {backend} failed: {reason}")

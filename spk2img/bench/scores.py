@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from spk2img.evaluation.metrics import psnr, ssim
+from spk2img.evaluation.metrics import psnr
+from spk2img.evaluation.scoring import TFP_WINDOWS, group_scores, image_scores, mean_scores
 from spk2img.runtime.classical import tfp
 from spk2img.sim.simulator import CENTER_FRAME
 
 from .cases import SCENE_CLASSES, SENSORS, BenchSet
-
-TFP_WINDOWS = tuple(range(3, 42, 2))
 
 
 def quality(images: np.ndarray, cases: BenchSet) -> dict:
@@ -19,24 +18,11 @@ def quality(images: np.ndarray, cases: BenchSet) -> dict:
     windows (``psnr``, ``ssim``), per scene class (``classes[name] = {psnr, ssim}``) and per
     sensor (``sensors["ideal" | "real"] = {psnr, ssim}``: a model trained for one sensor regime
     is judged on the windows it is for)."""
-    scores = [(psnr(i, t), ssim(i, t)) for i, t in zip(images, cases.truth, strict=True)]
-
-    def mean(picked: list[tuple[float, float]]) -> dict:
-        return {
-            "psnr": float(np.mean([p for p, _ in picked])),
-            "ssim": float(np.mean([s for _, s in picked])),
-        }
-
-    def per_group(labels: list[str], names) -> dict:
-        grouped = {
-            name: [s for s, g in zip(scores, labels, strict=True) if g == name] for name in names
-        }
-        return {name: mean(picked) for name, picked in grouped.items() if picked}
-
+    scores = image_scores(images, cases.truth)
     return {
-        **mean(scores),
-        "classes": per_group(cases.classes, SCENE_CLASSES),
-        "sensors": per_group(cases.sensors, SENSORS),
+        **mean_scores(scores),
+        "classes": group_scores(scores, cases.classes, SCENE_CLASSES),
+        "sensors": group_scores(scores, cases.sensors, SENSORS),
     }
 
 

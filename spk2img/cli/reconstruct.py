@@ -94,16 +94,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.quality != "best" and args.method != "net":
-        raise InputError(f"--quality is for --method net, not {args.method}")
+    """The flags are checked where the API checks its arguments (Reconstructor, the runtime's
+    ``method_window`` and ``load_network``), the output's suffix here."""
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
-    if args.batch < 1:
-        raise InputError(f"--batch must be >= 1, got {args.batch}")
-    if args.device not in (None, "cpu") and (args.backend != "onnx" or args.method != "net"):
-        raise InputError(f"--device {args.device} is for --method net with --backend onnx")
-    if args.binning != 1 and (args.method != "net" or args.quality != "best"):
-        raise InputError("--binning is for --method net with --quality best")
     spikes = api.read_spikes(args.input, args.height, args.width)
     if args.method == "net" and args.quality == "best":
         args.binning = _choose_binning(args, spikes)

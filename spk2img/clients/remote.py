@@ -47,7 +47,7 @@ def reconstruct_file_remote(
             if stride is None and args.centers is None:
                 stride = geometry.block_stride
             plan = method_plan(
-                args.method, args.centers, stride, args.window, args.binning, geometry
+                args.method, args.centers, stride, args.window, args.binning, geometry, args.quality
             )
             n_out = len(plan.centers_for(n_frames))
             centers = None if plan.centers is None else plan.centers.tolist()

@@ -79,25 +79,44 @@ def score(
     return score_images([method(scene.spikes, scene.truth) for scene in scenes], scenes)
 
 
+Scores = list[tuple[float, float]]
+"""``(PSNR dB, SSIM)`` of each image, in order."""
+
+
+def image_scores(images: Sequence[np.ndarray], truths: Sequence[np.ndarray]) -> Scores:
+    """PSNR and SSIM of each ``(H, W)`` image against its truth."""
+    return [(psnr(i, t), ssim(i, t)) for i, t in zip(images, truths, strict=True)]
+
+
+def mean_scores(scores: Scores) -> dict[str, float]:
+    """``{"psnr": mean dB, "ssim": mean}`` of ``scores``."""
+    return {
+        "psnr": float(np.mean([p for p, _ in scores])),
+        "ssim": float(np.mean([s for _, s in scores])),
+    }
+
+
+def group_scores(scores: Scores, labels: Sequence[str], names: Sequence[str]) -> dict[str, dict]:
+    """:func:`mean_scores` per group: ``{name: {psnr, ssim}}`` over the images labelled ``name``,
+    for each of ``names`` (in that order) that labels some image."""
+    grouped = {
+        name: [s for s, g in zip(scores, labels, strict=True) if g == name] for name in names
+    }
+    return {name: mean_scores(picked) for name, picked in grouped.items() if picked}
+
+
 def score_images(images: Sequence[np.ndarray], scenes: list[ValidationScene]) -> dict:
     """Mean PSNR (dB) and SSIM of ``images`` (one ``(H, W)`` image per scene, in order) against
     the scenes' truth: over all scenes (``psnr``, ``ssim``); ``psnr_<class>`` per motion,
     brightness and sensor; ``ssim_<sensor>`` per sensor."""
-    rows = [
-        (scene, psnr(image, scene.truth), ssim(image, scene.truth))
-        for image, scene in zip(images, scenes, strict=True)
-    ]
-    out = {
-        "psnr": float(np.mean([r[1] for r in rows])),
-        "ssim": float(np.mean([r[2] for r in rows])),
-    }
+    scores = image_scores(images, [scene.truth for scene in scenes])
+    out = mean_scores(scores)
     for attr, names in (("motion", MOTIONS), ("brightness", BRIGHTNESS), ("sensor", SENSORS)):
-        for name in names:
-            sel = [r for r in rows if getattr(r[0], attr) == name]
-            if sel:
-                out[f"psnr_{name}"] = float(np.mean([r[1] for r in sel]))
-                if attr == "sensor":
-                    out[f"ssim_{name}"] = float(np.mean([r[2] for r in sel]))
+        labels = [getattr(scene, attr) for scene in scenes]
+        for name, means in group_scores(scores, labels, names).items():
+            out[f"psnr_{name}"] = means["psnr"]
+            if attr == "sensor":
+                out[f"ssim_{name}"] = means["ssim"]
     return out
 
 

@@ -38,7 +38,7 @@ from spk2img.model.block_split import AlignFuseHead, BlockEncoder, repeated_code
 from spk2img.model.network import Spk2ImgNet
 from spk2img.runtime.block_codec import OnnxBlockCodec, block_graph_paths
 from spk2img.runtime.block_stream import BlockReuseStream
-from spk2img.runtime.stream import collect, frame_chunks, run_stream
+from spk2img.runtime.stream import collect, frame_chunks, net_input, run_stream
 from spk2img.runtime.windows import CenterPlan
 
 from .onnx_export import (
@@ -134,7 +134,7 @@ def stream_block_graphs(
 
 def whole_windows(model: Spk2ImgNet, spikes: np.ndarray, centers: np.ndarray) -> np.ndarray:
     """``model`` in PyTorch on the whole window of each centre: ``(N, H, W)``."""
-    half = model.config.geometry.half
-    windows = np.stack([spikes[k - half : k + half + 1] for k in centers]).astype(np.float32)
+    frames = model.config.window_frames
+    windows = np.stack([net_input(spikes, k, frames) for k in centers]).astype(np.float32)
     with torch.no_grad():
         return model.eval()(torch.from_numpy(windows))[0][:, 0].numpy()

@@ -30,7 +30,8 @@ from onnxruntime.transformers.onnx_model import OnnxModel as TransformersOnnxMod
 
 from spk2img.evaluation.metrics import psnr
 from spk2img.evaluation.scoring import validation_set
-from spk2img.runtime.onnx_backend import OnnxModel
+from spk2img.model.config import Geometry
+from spk2img.runtime.onnx_backend import OnnxModel, graph_geometry
 from spk2img.sim.simulator import training_sample
 
 from .onnx_export import INPUT_NAME, check_graph, operator_counts
@@ -46,11 +47,18 @@ the same PSNR against PyTorch."""
 
 
 class SimulatedWindows(CalibrationDataReader):
-    """``count`` simulated windows ``(1, 41, H, W)`` float32 of random scenes and sensors."""
+    """``count`` simulated windows ``(1, F, H, W)`` float32 of random scenes and sensors, each
+    the centred ``F`` frames of the network's ``geometry``."""
 
-    def __init__(self, count: int = CALIBRATION_WINDOWS, size: tuple[int, int] = CALIBRATION_SIZE):
+    def __init__(
+        self,
+        geometry: Geometry,
+        count: int = CALIBRATION_WINDOWS,
+        size: tuple[int, int] = CALIBRATION_SIZE,
+    ):
         rng = np.random.default_rng(CALIBRATION_SEED)
-        windows = [training_sample(rng, *size)[0][None].astype(np.float32) for _ in range(count)]
+        samples = [training_sample(rng, *size)[0] for _ in range(count)]
+        windows = [geometry.crop(s)[None].astype(np.float32) for s in samples]
         self._feeds = iter({INPUT_NAME: w} for w in windows)
 
     def get_next(self) -> dict[str, np.ndarray] | None:
@@ -63,6 +71,7 @@ def reduce_precision(fp32_path: str | Path, out: str | Path, precision: str) -> 
     (names, float32, dims); returns it. Any graph: the one-shot one, the block encoder, the
     head."""
     fp32 = onnx.load(fp32_path)
+    metadata = {p.key: p.value for p in fp32.metadata_props}
     if precision == "fp16":
         model = convert_float_to_float16(fp32, keep_io_types=True)
         # the converter appends its input casts at the end and leaves some value_info types
@@ -75,7 +84,7 @@ def reduce_precision(fp32_path: str | Path, out: str | Path, precision: str) -> 
             quantize_static(
                 fp32_path,
                 quantized,
-                SimulatedWindows(),
+                SimulatedWindows(graph_geometry(metadata, graph_io(fp32)[INPUT_NAME])),
                 quant_format=QuantFormat.QDQ,
                 per_channel=True,
                 activation_type=QuantType.QUInt8,
@@ -88,8 +97,7 @@ def reduce_precision(fp32_path: str | Path, out: str | Path, precision: str) -> 
     kept = [o for o in model.opset_import if o.domain in used or o.domain in ("", "ai.onnx")]
     del model.opset_import[:]
     model.opset_import.extend(kept)  # the quantizer declares Microsoft domains it does not use
-    metadata = {p.key: p.value for p in fp32.metadata_props} | {"precision": precision}
-    onnx.helper.set_model_props(model, metadata)
+    onnx.helper.set_model_props(model, metadata | {"precision": precision})
     check_graph(model, graph_io(fp32))
     onnx.save_model(model, out, save_as_external_data=False)
     return model
@@ -123,9 +131,10 @@ def precision_report(fp32_path: str | Path, candidate_path: str | Path, per_clas
     ``fp32_psnr_vs_truth_db`` (the same for the fp32 graph), ``nonfinite`` and ``scenes``.
     """
     scenes = validation_set(per_class)
-    spikes = np.stack([s.spikes for s in scenes]).astype(np.float32)
+    fp32 = OnnxModel(fp32_path, threads=1)
+    spikes = fp32.geometry.crop(np.stack([s.spikes for s in scenes]), axis=1).astype(np.float32)
     truth = np.stack([s.truth for s in scenes])
-    reference = OnnxModel(fp32_path, threads=1)(spikes)
+    reference = fp32(spikes)
     candidate = OnnxModel(candidate_path, threads=1)(spikes)
     finite = np.isfinite(candidate)
     return {

@@ -33,13 +33,14 @@ def method_plan(
     window: int = DEFAULT_TFP_WINDOW,
     binning: int = 1,
     geometry: Geometry = PUBLISHED_GEOMETRY,
+    quality: str = "best",
 ) -> CenterPlan:
     """The centre plan for ``method``: the network uses its ``geometry``'s frames (times
     ``binning`` stream frames, :func:`~spk2img.runtime.windows.net_window`); TFP uses ``window``;
-    TFI searches the whole stream but, like TFP, accepts only centres with a full ``window``."""
-    return CenterPlan.parse(
-        method_window(method, window, binning, geometry=geometry), centers, stride
-    )
+    TFI searches the whole stream but, like TFP, accepts only centres with a full ``window``.
+    The arguments are checked by :func:`method_window`."""
+    window = method_window(method, window, binning, quality, geometry)
+    return CenterPlan.parse(window, centers, stride)
 
 
 def method_window(
@@ -50,12 +51,18 @@ def method_window(
     geometry: Geometry = PUBLISHED_GEOMETRY,
 ) -> int:
     """Stream frames one reconstruction of ``method`` needs (for ``net``, the window of the
-    model's ``geometry``, the published one by default); checks the method, the quality and
-    that ``binning`` applies (``net`` with quality ``best``)."""
+    model's ``geometry``, the published one by default).
+
+    The one check of a request's method, quality and binning, for the API, the CLI and the
+    service: :class:`InputError` for an unknown method or quality, a quality other than
+    ``best`` for a classical method, and a ``binning`` other than 1 outside ``net`` with
+    quality ``best``."""
     check_method(method)
+    if check_quality(quality) != "best" and method != "net":
+        raise InputError(f"quality is for method net, not {method}")
     if binning != 1 and method != "net":
         raise InputError(f"binning is for method net, not {method}")
-    if check_quality(quality) != "best" and binning != 1:
+    if quality != "best" and binning != 1:
         raise InputError(f"binning is for quality best, not {quality}")
     return net_window(geometry.window_frames, binning) if method == "net" else window
 

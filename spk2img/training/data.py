@@ -18,11 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from spk2img.model.config import PUBLISHED_GEOMETRY, Geometry
+from spk2img.sim.natural_scenes import MAX_LAYERS, clip_scene, photo_scene
 from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, random_scene
 from spk2img.sim.simulator import SensorConfig, ground_truth, simulate
-
-from .natural_scenes import MAX_LAYERS, clip_scene, photo_scene
-from .sources import SourceIndex, load_clip, load_photo
+from spk2img.sim.sources import SourceIndex, load_clip, load_photo
 
 KINDS = ("procedural", "photos", "clips")
 

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spk2img.evaluation.natural_validation import natural_validation_set
 from spk2img.evaluation.scoring import (
     BRIGHTNESS,
     MOTIONS,
@@ -34,7 +35,6 @@ from spk2img.model.network import Spk2ImgNet
 from spk2img.runtime.binning import suggest_binning
 from spk2img.runtime.onnx_backend import OnnxModel, graph_metadata
 
-from .natural_validation import natural_validation_set
 from .train import selection_words
 
 CLASSES = [f"psnr_{c}" for c in (*SENSORS, *MOTIONS, *BRIGHTNESS)]

@@ -22,6 +22,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from spk2img.errors import InputError
+from spk2img.evaluation.natural_validation import HELD_OUT, natural_validation_set
 from spk2img.evaluation.scoring import baseline_scores, network_scorer, score, validation_set
 from spk2img.model.checkpoint import (
     config_to_dict,
@@ -34,11 +35,10 @@ from spk2img.model.config import get_config
 from spk2img.model.network import Spk2ImgNet
 from spk2img.provenance import git_commit
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
+from spk2img.sim.sources import SourceIndex
 
 from .data import Batches, DataMix, SampleMaker, check_ideal_share
 from .loss import check_final_term, hierarchical_loss
-from .natural_validation import HELD_OUT, natural_validation_set
-from .sources import SourceIndex
 
 CHECKPOINT_SECONDS = 600.0
 
@@ -66,7 +66,7 @@ class TrainConfig:
     seed: int = 0
     """Seed of the initial weights and of every batch (batches are a function of seed and step)."""
     data: list[str] = field(default_factory=list)
-    """Folders of photographs and clips (:mod:`spk2img.training.sources`); none: procedural
+    """Folders of photographs and clips (:mod:`spk2img.sim.sources`); none: procedural
     content only. The held-out sources of the natural validation are never trained on."""
     data_mix: str = "photos=0.5,clips=0.3,procedural=0.2"
     """Shares of photo, clip and procedural samples (natural kinds need ``--data``)."""

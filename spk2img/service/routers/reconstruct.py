@@ -78,8 +78,6 @@ async def reconstruct(
     its window has arrived."""
     settings = service.settings
     _check_content_type(request.headers.get("content-type"))
-    if query.quality != "best" and query.method != "net":
-        raise RequestError(422, f"quality is for method net, not {query.method}")
     plan = _plan(query, settings, network.geometry)
     length = request.headers.get("content-length")
     response_bytes = settings.response_buffer_bytes  # unknown before a chunked upload ends

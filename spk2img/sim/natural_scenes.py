@@ -40,8 +40,7 @@ from spk2img.sim.scenes import (
     sample_bilinear,
 )
 from spk2img.sim.simulator import FILM_FRAMES
-
-from .sources import to_linear
+from spk2img.sim.sources import to_linear
 
 MAX_LAYERS = 3
 LAYER_COUNT_WEIGHTS = (0.3, 0.3, 0.25, 0.15)  # P(0, 1, 2, 3 foreground layers)

@@ -1,4 +1,4 @@
-"""The service under hostile and careless clients (issue 16), over loopback, bounded in count and
+"""The service under hostile and careless clients, over loopback, bounded in count and
 time: trickling and stalled uploads, junk labels, half-sent heads, too many connections,
 disconnects mid-job, half-close, send-then-read clients and the memory budget."""
 
@@ -47,7 +47,7 @@ class SlowModel:
 @pytest.fixture(scope="module")
 def guarded(standin_model):
     """One job at a time (capacity 1), short timeouts, few connections, a small buffer and
-    memory budget: every limit of issue 16 is cheap to reach."""
+    memory budget: every limit is cheap to reach."""
     settings = dict(
         threads=1,
         workers=1,

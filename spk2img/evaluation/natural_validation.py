@@ -15,12 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.scoring import MOTIONS, ValidationScene
+from spk2img.sim.natural_scenes import clip_scene, photo_scene
 from spk2img.sim.scenes import BRIGHTNESSES
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, SensorConfig, ground_truth, simulate
-
-from .natural_scenes import clip_scene, photo_scene
-from .sources import FrameFolder, Photo, SourceIndex, load_clip, load_photo
+from spk2img.sim.sources import FrameFolder, Photo, SourceIndex, load_clip, load_photo
 
 HELD_OUT_PHOTOS = (
     "urban100_img_004.png",

@@ -1,4 +1,4 @@
-"""What a newcomer meets (issue 17): every command on every install level works or says in one
+"""What a new user meets: every command on every install level works or says in one
 line which extra to install; Python versions; docs that stand alone; honest progress; bench
 runs outside docs/; a clean repo; inputs that are not 0/1 spikes refused. No test calls pip:
 install levels are simulated by hiding the extras' modules from the import system."""
