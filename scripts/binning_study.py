@@ -1,6 +1,6 @@
 """Binning on dim still scenes: the network with K frames merged against TFP, TFI and no binning.
 
-``python scripts/binning_study.py --data ../shared/data/train [--model default] [--rates
+``python scripts/binning_study.py --data DATA [--model default] [--rates
 0.015,0.03,0.06] [--json OUT.json]`` films the first six held-out photographs of the natural
 validation (:data:`~spk2img.evaluation.natural_validation.HELD_OUT_PHOTOS`; centre crops of
 160x160, still, scaled to a mean firing rate) with the noise-free and the fitted sensor for

@@ -3,7 +3,7 @@
 The real ``spk2img serve`` runs in a subprocess on a free port of 127.0.0.1 with ``--threads T``
 (its default: ``T`` workers of one onnxruntime thread each). Each request uploads one 41-frame
 window and gets its centre frame back through :class:`~spk2img.clients.Client`. The in-process
-baseline runs the same graph in one :class:`~spk2img.runtime.onnx_backend.OnnxModel` of one thread
+baseline runs the same graph, loaded as the service loads it, with one thread
 in a pool of ``T`` threads fed by as many concurrent callers — the service minus HTTP.
 """
 
@@ -128,12 +128,12 @@ def service_benchmark(
     of concurrent clients in ``levels``; ``overhead`` is in-process frames/s over the service's.
     ``device``: where both run; the service must report that it runs there (``/readyz``), else
     :class:`RuntimeError`."""
-    from spk2img.runtime.onnx_backend import OnnxModel
+    from spk2img.runtime.loader import load_network
 
     batch = window[None].astype(np.float32)
-    # the service's intra-op threads: T // T workers
-    local_model = OnnxModel(model, threads=1, device=device)
-    local_model(batch)  # warm-up, as the service warms up before it is ready
+    # the service's intra-op threads: T // T workers; warmed up as the service is before ready
+    local_model = load_network(model, device=device, threads=1, block_reuse=False).predict
+    local_model(batch)  # and on this window's size
     jobs = ThreadPoolExecutor(threads)  # like the service's pool: T jobs at once, FIFO queue
 
     def local_call() -> Callable[[], None]:

@@ -40,7 +40,7 @@ def stream_benchmark(
     largest difference and the MAC ratio."""
     from spk2img.model.checkpoint import config_from_dict
     from spk2img.model.complexity import count_macs, count_stream_macs
-    from spk2img.runtime.onnx_backend import OnnxModel
+    from spk2img.runtime.onnx_backend import graph_metadata
 
     rng = np.random.default_rng([BENCH_SEED, 7])
     log(f"simulating a {frames}-frame {height}x{width} stream (fast motion, real-like sensor)")
@@ -48,7 +48,7 @@ def stream_benchmark(
         random_scene(rng, height, width, "fast", "normal"), frames, SensorConfig.real(), rng
     )
     np.save(work / "stream.npy", spikes)
-    metadata = OnnxModel(model, 1).metadata
+    metadata = graph_metadata(model)
     config = config_from_dict(json.loads(metadata["config"]))
     encoder, head = count_stream_macs(config, height, width)
     whole_macs = count_macs(config, height, width)

@@ -130,10 +130,13 @@ def measure_gpu(spec: dict) -> dict:
     """ms per frame of one GPU row: one-shot ``batch`` windows a call, or streamed (0)."""
     import tempfile
 
-    from spk2img.runtime.onnx_backend import OnnxModel
+    from spk2img.runtime.loader import load_network
 
     (threads,) = spec["threads"]
-    model = OnnxModel(spec["model"], threads, spec["device"])
+    network = load_network(
+        spec["model"], device=spec["device"], threads=threads, block_reuse=False, warm_up=False
+    )
+    model = network.predict
     where = {"device": model.device, "provider": model.provider}
     if spec["batch"]:
         windows = load_spikes(Path(spec["cases"]))
@@ -157,12 +160,12 @@ def measure_gpu(spec: dict) -> dict:
 def measure_tiers(spec: dict) -> dict:
     """Seconds and images of each quality tier on every window of the benchmark set."""
     from spk2img.runtime.adaptive import balanced_image
-    from spk2img.runtime.onnx_backend import OnnxModel
+    from spk2img.runtime.loader import load_network
     from spk2img.runtime.stream import tfp_image
 
     (threads,) = spec["threads"]
     windows = load_spikes(Path(spec["cases"]))
-    model = OnnxModel(spec["model"], threads)
+    model = load_network(spec["model"], threads=threads, block_reuse=False, warm_up=False).predict
     shares: list[float] = []
 
     def balanced(window: np.ndarray) -> np.ndarray:

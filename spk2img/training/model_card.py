@@ -33,6 +33,7 @@ from spk2img.model.checkpoint import load_checkpoint, stored_config
 from spk2img.model.complexity import count_macs, count_parameters
 from spk2img.model.network import Spk2ImgNet
 from spk2img.runtime.binning import suggest_binning
+from spk2img.runtime.loader import load_network
 from spk2img.runtime.onnx_backend import OnnxModel, graph_metadata
 
 from .train import selection_words
@@ -49,7 +50,7 @@ LOSS_NOTES = {
 def evaluate(onnx_path: Path, data: list[Path], per_class: int, size: tuple[int, int]) -> dict:
     """Scores of the network, best-window TFP and TFI on the natural validation set (empty
     without ``data``) and on the held-out procedural test scenes."""
-    net = network_scorer(OnnxModel(onnx_path, threads=2))
+    net = network_scorer(load_network(onnx_path, threads=2, block_reuse=False).predict)
     sets = {"natural": natural_validation_set(data) if data else []}
     sets["procedural"] = validation_set(per_class, *size, seed=TEST_SEED)
     return {
@@ -65,7 +66,7 @@ def real_capture_niqe(onnx_path: Path, capture: Path) -> dict:
     :func:`~spk2img.runtime.binning.suggest_binning` picks, at the centres its window allows."""
     stream = read_spikes(capture)
     spikes = as_spike_array(np.asarray(stream[0 : stream.shape[0]]))
-    net = OnnxModel(onnx_path, threads=2)
+    net = load_network(onnx_path, threads=2, block_reuse=False).predict
     binning = suggest_binning(spikes)
     plain = _niqe_at_centres(spikes, net, 1)
     binned = _niqe_at_centres(spikes, net, binning)
