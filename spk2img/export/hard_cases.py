@@ -17,13 +17,14 @@ import numpy as np
 import torch
 
 from spk2img.evaluation.scoring import validation_set
+from spk2img.evaluation.window_sets import seed_of
 from spk2img.model.config import PUBLISHED_GEOMETRY
 from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.model.network import Spk2ImgNet
 from spk2img.sim.scenes import Motion, MovingImage, random_scene
 from spk2img.sim.simulator import SensorConfig, simulate
 
-HARD_CASE_SEED = 271_828  # disjoint from training (< 10**6 but never used there) and validation
+HARD_CASE_SEED = seed_of("hard cases")
 CASE_HEIGHT, CASE_WIDTH = 48, 64  # size of the content hard cases
 CASE_FRAMES = PUBLISHED_GEOMETRY.window_frames
 """Frames of every case's windows (41): a network with a shorter window reads their centred crop

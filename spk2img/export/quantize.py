@@ -30,6 +30,7 @@ from onnxruntime.transformers.onnx_model import OnnxModel as TransformersOnnxMod
 
 from spk2img.evaluation.metrics import psnr
 from spk2img.evaluation.scoring import validation_set
+from spk2img.evaluation.window_sets import seed_of
 from spk2img.model.config import Geometry
 from spk2img.runtime.onnx_backend import OnnxModel, graph_geometry
 from spk2img.sim.simulator import training_sample
@@ -37,7 +38,7 @@ from spk2img.sim.simulator import training_sample
 from .onnx_export import INPUT_NAME, check_graph, operator_counts
 
 PRECISIONS = ("fp32", "fp16", "int8")
-CALIBRATION_SEED = 161_803  # disjoint from training seeds and VALIDATION_SEED
+CALIBRATION_SEED = seed_of("calibration")
 CALIBRATION_WINDOWS = 16
 CALIBRATION_SIZE = (64, 96)
 MIN_PSNR_VS_FP32 = 30.0
