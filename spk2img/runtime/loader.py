@@ -1,6 +1,7 @@
 """Loading a network for inference: the one place that turns a model name or file, a backend and
-a device into something ready to reconstruct frames (the API, the service, the bench and verify
-all load through :func:`load_network`).
+a device into something ready to reconstruct frames: the API, the service, the bench and the
+model cards load through :func:`load_network` (``spk2img verify`` opens graph files itself, as
+checking them is its job).
 
 A :class:`LoadedNetwork` holds the network on whole windows (onnxruntime's
 :class:`~spk2img.runtime.onnx_backend.OnnxModel` or torch's
@@ -42,11 +43,6 @@ class LoadedNetwork:
     batch: int = 1
     """Windows per call when windows run whole."""
 
-    @property
-    def device(self) -> str:
-        """Where the network runs: ``cpu``, ``cuda`` or ``tensorrt``."""
-        return getattr(self.predict, "device", "cpu")
-
     def warm_up(self, height: int = WARMUP_SIZE, width: int = WARMUP_SIZE) -> None:
         """Run the network (and the block encoder and head) once on zeros of ``height x width``,
         so that the first real call does not pay for the runtime's first-call set-up."""
@@ -76,6 +72,7 @@ class LoadedNetwork:
             codec=self.codec,
             quality=quality,
             binning=binning,
+            geometry=self.geometry,
         )
 
 

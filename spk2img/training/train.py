@@ -22,7 +22,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from spk2img.errors import InputError
-from spk2img.evaluation.natural_validation import HELD_OUT, natural_validation_set
+from spk2img.evaluation.natural_validation import NEVER_TRAINED, natural_validation_set
 from spk2img.evaluation.scoring import baseline_scores, network_scorer, score, validation_set
 from spk2img.model.checkpoint import (
     config_to_dict,
@@ -185,7 +185,7 @@ def train(cfg: TrainConfig) -> dict:
         init_from = None
     commit = state.get("commit", "unknown") if start else git_commit()  # the code that trains
     net = DistributedDataParallel(model) if run.world > 1 else model
-    index = SourceIndex.scan(cfg.data, cfg.patch, HELD_OUT) if cfg.data else None
+    index = SourceIndex.scan(cfg.data, cfg.patch, NEVER_TRAINED) if cfg.data else None
     real_sensor = load_preset(cfg.sensor_preset or FITTED_PRESET)
     mix = DataMix.parse(cfg.data_mix)
     maker = SampleMaker(

@@ -1,0 +1,150 @@
+"""The real-video validation: held-out real clips, filmed with their own motion at their stored
+resolution, under the field's light convention.
+
+The benchmark this project is judged on simulates spike streams from real video with the 8-bit
+frame value as the light (a pixel of value ``v`` fires ``0.6 * v / 255`` spikes a frame, no
+display gamma undone) and real, non-uniform motion of about 0.14 px a spike frame on texture-rich
+scenes. The natural validation (:mod:`.natural_validation`) pans photographs and crops clips
+with linear light, and its scores did not predict that benchmark's. Here:
+
+- **Clips**: :data:`REAL_VIDEO_CLIPS`, 15 real 1000 frame/s clips (X4K1000FPS X-TEST, 33 frames
+  each) and the 4 Vid4 clips, whole frames (less a margin of :data:`~spk2img.sim.natural_scenes.
+  CLIP_MARGIN` pixels for the flow), never trained on (training skips them whatever ``--data``
+  holds).
+- **Light**: display-referred, ``value / 255`` (:func:`display_light`).
+- **Motion**: the clip's own, interpolated between video frames along its optical flow
+  (:class:`~spk2img.sim.natural_scenes.ClipScene`). The spike frames per video interval are set
+  so that the clip's median flow magnitude is each speed of :data:`SPEEDS` px a spike frame,
+  where the clip is long enough (a window must fit in it: slow clips stay slower).
+- **Sensor**: noise-free integrate-and-fire; the window in the middle of the clip; the truth at
+  its centre frame (:data:`~spk2img.sim.simulator.CENTER_FRAME`) as the renderer defines it.
+- **Seeds**: each seed of :func:`real_video_set` draws the sensor's initial charge: the spread
+  over seeds says how stable a score is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from spk2img.evaluation.window_sets import seed_of
+from spk2img.sim.natural_scenes import ClipScene, dis_flow
+from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, SensorConfig, ground_truth, simulate
+from spk2img.sim.sources import FrameFolder, SourceIndex, load_clip
+
+X4K_CLIPS = (
+    "x4k1000fps_TEST01_003_f0433",
+    "x4k1000fps_TEST02_045_f0465",
+    "x4k1000fps_TEST03_081_f4833",
+    "x4k1000fps_TEST04_140_f3889",
+    "x4k1000fps_TEST05_158_f0321",
+    "x4k1000fps_TEST06_001_f0273",
+    "x4k1000fps_TEST07_076_f1889",
+    "x4k1000fps_TEST08_079_f0321",
+    "x4k1000fps_TEST09_112_f0177",
+    "x4k1000fps_TEST10_172_f1905",
+    "x4k1000fps_TEST11_078_f4977",
+    "x4k1000fps_TEST12_087_f2721",
+    "x4k1000fps_TEST13_133_f4593",
+    "x4k1000fps_TEST14_146_f1761",
+    "x4k1000fps_TEST15_148_f0465",
+)
+"""X4K1000FPS X-TEST (research and education only: never trained on)."""
+VID4_CLIPS = ("vid4_calendar", "vid4_city", "vid4_foliage", "vid4_walk")
+"""Vid4 (texture-rich; no licence stated for the frames: never trained on)."""
+REAL_VIDEO_CLIPS = X4K_CLIPS + VID4_CLIPS
+"""The clips of the real-video validation, by folder name."""
+SPEEDS = {"benchmark": 0.14, "fast": 1.0}
+"""Speed bin -> median flow magnitude in px a spike frame: the benchmark's camera pans, and
+ten times faster motion."""
+SEEDS = 3
+"""Draws of the sensor's initial charge per window by default."""
+
+
+def display_light(grey: np.ndarray) -> np.ndarray:
+    """``(H, W) uint8`` frame values -> ``(H, W) float32`` light in [0, 1]: ``value / 255``, the
+    field's convention (no display gamma undone)."""
+    return np.asarray(grey, np.float32) / 255
+
+
+@dataclass(frozen=True)
+class RealVideoScene:
+    """One clip filmed at one speed bin."""
+
+    clip: str
+    speed_bin: str
+    speed: float
+    """Median flow magnitude over the window, px a spike frame (below the bin's where the clip
+    is too slow)."""
+    scene: ClipScene
+
+
+@dataclass(frozen=True)
+class RealVideoWindow:
+    """One filmed window of a :class:`RealVideoScene`."""
+
+    clip: str
+    speed_bin: str
+    seed: int
+    spikes: np.ndarray
+    """``(FILM_FRAMES, H, W) uint8`` 0/1."""
+    truth: np.ndarray
+    """``(H, W) float32`` light at the centre frame."""
+
+
+def real_video_scene(
+    name: str, frames: tuple[np.ndarray, ...], speed_bin: str, window: int = FILM_FRAMES
+) -> RealVideoScene:
+    """Clip ``name``'s ``(H, W) uint8`` frames as a scene moving at ``SPEEDS[speed_bin]`` px a
+    spike frame (or as fast as a ``window``-frame window in the clip allows), the window in the
+    middle of the clip, light by :func:`display_light`."""
+    if len(frames) < 2:
+        raise ValueError(f"clip {name} has {len(frames)} frame(s): at least 2 are needed")
+    forward = np.stack([dis_flow(a, b) for a, b in zip(frames, frames[1:], strict=False)])
+    backward = np.stack([dis_flow(b, a) for a, b in zip(frames, frames[1:], strict=False)])
+    per_video_frame = float(np.median(np.linalg.norm(forward, axis=-1)))
+    intervals = len(frames) - 1
+    per_interval = max(window / intervals, per_video_frame / SPEEDS[speed_bin])
+    start = (intervals * per_interval - window) / 2  # the window in the middle of the clip
+    light = np.stack([display_light(f) for f in frames])
+    speed = per_video_frame / per_interval
+    meta = {"kind": "real video", "clip": name, "speed": speed, "speed_bin": speed_bin}
+    meta["frames_per_interval"] = per_interval
+    scene = ClipScene(light, forward, backward, per_interval, start, meta)
+    return RealVideoScene(name, speed_bin, speed, scene)
+
+
+def find_real_video_clips(folders: list[str | Path]) -> list[FrameFolder]:
+    """The clips of :data:`REAL_VIDEO_CLIPS` found under ``folders``, in that order."""
+    found: dict[str, FrameFolder] = {}
+    for folder in folders:
+        index = SourceIndex.scan([folder], min_side=0)
+        found |= {c.name: c for c in index.clips if c.name in REAL_VIDEO_CLIPS}
+    return [found[name] for name in REAL_VIDEO_CLIPS if name in found]
+
+
+def film(scene: RealVideoScene, seed: int) -> RealVideoWindow:
+    """``scene`` filmed by the noise-free sensor over :data:`FILM_FRAMES` frames, the sensor's
+    initial charge drawn from ``seed``, with its truth at the centre frame."""
+    rng = np.random.default_rng([seed_of("real video"), seed])
+    spikes = simulate(scene.scene, FILM_FRAMES, SensorConfig.ideal(), rng)
+    truth = ground_truth(scene.scene, [CENTER_FRAME])[0]
+    return RealVideoWindow(scene.clip, scene.speed_bin, seed, spikes, truth)
+
+
+def real_video_set(
+    folders: list[str | Path], seeds: int = SEEDS, speed_bins: tuple[str, ...] = tuple(SPEEDS)
+) -> tuple[list[RealVideoScene], list[RealVideoWindow]]:
+    """Each clip of :data:`REAL_VIDEO_CLIPS` under ``folders`` at each speed bin, and its window
+    filmed once per seed ``0 .. seeds - 1``; both empty when ``folders`` hold none of the
+    clips."""
+    scenes, windows = [], []
+    for clip in find_real_video_clips(folders):
+        frames = load_clip(clip)
+        for speed_bin in speed_bins:
+            scene = real_video_scene(clip.name, frames, speed_bin)
+            scenes.append(scene)
+            windows += [film(scene, seed) for seed in range(seeds)]
+    return scenes, windows

@@ -1,0 +1,108 @@
+"""The real-video validation (spk2img.evaluation.real_video): the field's light convention, the
+clip's own motion brought to each speed bin, the window in the middle of the clip, the truth
+the renderer defines, and the clips kept out of training."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis.extra.numpy import arrays
+from PIL import Image
+
+from spk2img.evaluation.natural_validation import NEVER_TRAINED
+from spk2img.evaluation.real_video import (
+    REAL_VIDEO_CLIPS,
+    SPEEDS,
+    display_light,
+    film,
+    find_real_video_clips,
+    real_video_scene,
+    real_video_set,
+)
+from spk2img.io.light import SPIKE_RATE
+from spk2img.sim.natural_scenes import CLIP_MARGIN
+from spk2img.sim.simulator import FILM_FRAMES
+from spk2img.sim.sources import SourceIndex
+
+H, W = 64, 96
+
+
+def moving_texture(frames: int, px_per_frame: float) -> tuple[np.ndarray, ...]:
+    """``frames`` uint8 frames of a smooth texture translating right by ``px_per_frame``."""
+    y, x = np.mgrid[:H, :W].astype(np.float64)
+    out = []
+    for k in range(frames):
+        u = x - k * px_per_frame
+        value = 128 + 60 * np.sin(u / 3.1) * np.cos(y / 4.3) + 40 * np.sin((u + 2 * y) / 7.7)
+        out.append(np.clip(value, 0, 255).astype(np.uint8))
+    return tuple(out)
+
+
+@given(arrays(np.uint8, (3, 5)))
+def test_display_light_is_the_frame_value_over_255(grey):
+    light = display_light(grey)
+    assert light.dtype == np.float32
+    np.testing.assert_array_equal(light, grey.astype(np.float32) / 255)
+
+
+@pytest.mark.parametrize("speed_bin", list(SPEEDS))
+def test_the_clip_moves_at_the_bin_speed_where_it_is_long_enough(speed_bin):
+    frames = moving_texture(20, 1.0)
+    scene = real_video_scene("synthetic", frames, speed_bin)
+    per_interval = scene.scene.frames_per_interval
+    measured = scene.speed * per_interval  # the clip's median flow, px a video frame
+    assert measured == pytest.approx(1.0, abs=0.1)
+    assert scene.speed <= SPEEDS[speed_bin] + 1e-9
+    if per_interval > FILM_FRAMES / 19:  # the bin's speed fits: exactly it
+        assert scene.speed == pytest.approx(SPEEDS[speed_bin])
+    else:  # too short a clip for that speed: the window spans the whole clip
+        assert per_interval == pytest.approx(FILM_FRAMES / 19)
+    # the window sits in the middle of the clip's time
+    span = 19 * per_interval
+    assert scene.scene.start == pytest.approx((span - FILM_FRAMES) / 2)
+
+
+def test_a_still_clip_fires_at_0_6_value_over_255_and_its_truth_is_the_frame():
+    value = 200
+    frames = tuple(np.full((H, W), value, np.uint8) for _ in range(5))
+    scene = real_video_scene("still", frames, "benchmark")
+    window = film(scene, seed=0)
+    assert window.spikes.shape == (FILM_FRAMES, H - 2 * CLIP_MARGIN, W - 2 * CLIP_MARGIN)
+    rate = window.spikes.mean(axis=0)
+    np.testing.assert_allclose(rate, SPIKE_RATE * value / 255, atol=1 / FILM_FRAMES + 1e-6)
+    np.testing.assert_allclose(window.truth, value / 255, atol=1e-6)
+    assert not np.array_equal(window.spikes, film(scene, seed=1).spikes)  # another start charge
+    np.testing.assert_array_equal(window.spikes, film(scene, seed=0).spikes)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    """A data folder with two validation clips (as numbered frames) and a clip of another name."""
+    root = tmp_path_factory.mktemp("data")
+    for name in ("vid4_walk", "x4k1000fps_TEST02_045_f0465", "my_clip"):
+        (root / name).mkdir()
+        for k, frame in enumerate(moving_texture(6, 0.5)):
+            Image.fromarray(frame).save(root / name / f"{k:05d}.png")
+    return root
+
+
+def test_the_clips_are_found_in_registry_order_and_never_trained_on(data_dir):
+    found = find_real_video_clips([data_dir])
+    assert [c.name for c in found] == ["x4k1000fps_TEST02_045_f0465", "vid4_walk"]
+    assert set(REAL_VIDEO_CLIPS) <= NEVER_TRAINED
+    training = SourceIndex.scan([data_dir], 8, NEVER_TRAINED)
+    assert [c.name for c in training.clips] == ["my_clip"]
+
+
+def test_the_set_films_every_clip_at_every_bin_and_seed(data_dir):
+    scenes, windows = real_video_set([data_dir], seeds=2)
+    assert [(s.clip, s.speed_bin) for s in scenes] == [
+        (clip, b) for clip in ("x4k1000fps_TEST02_045_f0465", "vid4_walk") for b in SPEEDS
+    ]
+    assert len(windows) == 2 * len(scenes)
+    assert {(w.clip, w.speed_bin, w.seed) for w in windows} == {
+        (s.clip, s.speed_bin, seed) for s in scenes for seed in (0, 1)
+    }
+    for w in windows:
+        assert set(np.unique(w.spikes)) <= {0, 1} and np.isfinite(w.truth).all()
