@@ -18,56 +18,24 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.evaluation.real_video import SPEEDS, RealVideoWindow, real_video_set
-from spk2img.evaluation.scoring import group_scores, image_scores, mean_scores, tfp_best_window
-from spk2img.runtime.classical import tfi, tfp
+from spk2img.evaluation.real_video import SPEEDS, real_video_scores, real_video_set
+from spk2img.evaluation.scoring import network_scorer, tfi_window, tfp_best_window, tfp_window
 from spk2img.runtime.loader import load_network
-from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES
 
-Method = Callable[[RealVideoWindow], np.ndarray]
+Method = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""``(spikes, truth)`` of a window -> ``(H, W)`` image (spk2img.evaluation.scoring's shape)."""
 
 
 def classical_methods() -> dict[str, Method]:
     return {
-        "TFP-41": lambda w: tfp(w.spikes, [CENTER_FRAME], FILM_FRAMES)[0],
-        "TFP, best window (oracle)": lambda w: tfp_best_window(w.spikes, w.truth),
-        "TFI": lambda w: tfi(w.spikes, [CENTER_FRAME])[0],
+        "TFP-41": tfp_window,
+        "TFP, best window (oracle)": tfp_best_window,
+        "TFI": tfi_window,
     }
 
 
 def network_method(name: str, threads: int) -> Method:
-    network = load_network(name, threads=threads, block_reuse=False)
-    geometry = network.geometry
-    return lambda w: network.predict(geometry.crop(w.spikes)[None].astype(np.float32))[0]
-
-
-def summary(windows: list[RealVideoWindow], images: list[np.ndarray], seconds: float) -> dict:
-    scores = image_scores(images, [w.truth for w in windows])
-    seeds = sorted({w.seed for w in windows})
-    per_seed = [
-        mean_scores([s for s, w in zip(scores, windows, strict=True) if w.seed == seed])["psnr"]
-        for seed in seeds
-    ]
-    clips = list(dict.fromkeys(w.clip for w in windows))
-    per_bin = {}
-    for speed_bin in SPEEDS:
-        picked = [(s, w) for s, w in zip(scores, windows, strict=True) if w.speed_bin == speed_bin]
-        if not picked:
-            continue
-        by_clip = group_scores([s for s, _ in picked], [w.clip for _, w in picked], clips)
-        clip_psnr = [v["psnr"] for v in by_clip.values()]
-        per_bin[speed_bin] = {
-            **mean_scores([s for s, _ in picked]),
-            "clip_std_db": float(np.std(clip_psnr)),
-            "clips": by_clip,
-        }
-    return {
-        **mean_scores(scores),
-        "seed_psnr": per_seed,
-        "seed_std_db": float(np.std(per_seed)),
-        "speed_bins": per_bin,
-        "seconds": seconds,
-    }
+    return network_scorer(load_network(name, threads=threads, block_reuse=False).predict)
 
 
 def markdown(results: dict) -> str:
@@ -122,7 +90,7 @@ def main() -> None:
     p.add_argument("--md", type=Path, default=Path("docs/real_video.md"))
     args = p.parse_args()
     start = time.perf_counter()
-    scenes, windows = real_video_set(args.data, seeds=args.seeds)
+    windows = real_video_set(args.data, seeds=args.seeds)
     if not windows:
         raise SystemExit(f"none of the real-video clips under {args.data}")
     print(f"{len(windows)} windows filmed in {time.perf_counter() - start:.0f} s", flush=True)
@@ -132,19 +100,20 @@ def main() -> None:
     results = {}
     for name, method in methods.items():
         start = time.perf_counter()
-        images = [method(w) for w in windows]
-        results[name] = summary(windows, images, time.perf_counter() - start)
+        images = [method(w.spikes, w.truth) for w in windows]
+        results[name] = real_video_scores(windows, images)
+        results[name]["seconds"] = time.perf_counter() - start
         print(f"{name}: {results[name]['psnr']:.2f} dB", flush=True)
     data = {
         "command": "python scripts/real_video_validation.py --data DATA "
         f"--models {args.models} --seeds {args.seeds}",
         "date": time.strftime("%Y-%m-%d"),
-        "clips": len({s.clip for s in scenes}),
+        "clips": len({w.clip for w in windows}),
         "windows": len(windows),
         "seeds": args.seeds,
         "speeds": {
-            clip: {s.speed_bin: s.speed for s in scenes if s.clip == clip}
-            for clip in dict.fromkeys(s.clip for s in scenes)
+            clip: {w.speed_bin: w.speed for w in windows if w.clip == clip}
+            for clip in dict.fromkeys(w.clip for w in windows)
         },
         "methods": results,
     }

@@ -14,16 +14,19 @@ from spk2img.evaluation.natural_validation import NEVER_TRAINED
 from spk2img.evaluation.real_video import (
     REAL_VIDEO_CLIPS,
     SPEEDS,
+    RealVideoWindow,
     display_light,
     film,
     find_real_video_clips,
     real_video_scene,
+    real_video_scores,
     real_video_set,
 )
 from spk2img.io.light import SPIKE_RATE
 from spk2img.sim.natural_scenes import CLIP_MARGIN
 from spk2img.sim.simulator import FILM_FRAMES
 from spk2img.sim.sources import SourceIndex
+from spk2img.training.model_card import real_video_section
 
 H, W = 64, 96
 
@@ -96,13 +99,36 @@ def test_the_clips_are_found_in_registry_order_and_never_trained_on(data_dir):
 
 
 def test_the_set_films_every_clip_at_every_bin_and_seed(data_dir):
-    scenes, windows = real_video_set([data_dir], seeds=2)
-    assert [(s.clip, s.speed_bin) for s in scenes] == [
-        (clip, b) for clip in ("x4k1000fps_TEST02_045_f0465", "vid4_walk") for b in SPEEDS
+    windows = real_video_set([data_dir], seeds=2)
+    assert [(w.clip, w.speed_bin, w.seed) for w in windows] == [
+        (clip, b, seed)
+        for clip in ("x4k1000fps_TEST02_045_f0465", "vid4_walk")
+        for b in SPEEDS
+        for seed in (0, 1)
     ]
-    assert len(windows) == 2 * len(scenes)
-    assert {(w.clip, w.speed_bin, w.seed) for w in windows} == {
-        (s.clip, s.speed_bin, seed) for s in scenes for seed in (0, 1)
-    }
     for w in windows:
         assert set(np.unique(w.spikes)) <= {0, 1} and np.isfinite(w.truth).all()
+
+
+def test_scores_per_bin_clip_and_seed_and_the_cards_section():
+    """An image 0.01 off the truth everywhere scores 40 dB in every bin, clip and seed."""
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.2, 0.8, (16, 16)).astype(np.float32)
+    spikes = np.zeros((FILM_FRAMES, 16, 16), np.uint8)
+    windows = [
+        RealVideoWindow(clip, b, SPEEDS[b], seed, spikes, truth)
+        for clip in ("a", "b")
+        for b in SPEEDS
+        for seed in (0, 1)
+    ]
+    scores = real_video_scores(windows, [w.truth + 0.01 for w in windows])
+    assert scores["psnr"] == pytest.approx(40.0, abs=1e-3)
+    assert scores["seed_psnr"] == pytest.approx([40.0, 40.0], abs=1e-3)
+    assert scores["seed_std_db"] == pytest.approx(0.0, abs=1e-6)
+    for b in SPEEDS:
+        assert set(scores["speed_bins"][b]["clips"]) == {"a", "b"}
+        assert scores["speed_bins"][b]["clip_std_db"] == pytest.approx(0.0, abs=1e-6)
+    section = real_video_section({"network": scores, "TFI": scores})
+    assert (
+        "| network | 40.00 | " in section and "Per clip, benchmark bin: a 40.0, b 40.0" in section
+    )

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spk2img.evaluation.scoring import group_scores, image_scores, mean_scores
 from spk2img.evaluation.window_sets import seed_of
 from spk2img.sim.natural_scenes import ClipScene, dis_flow
 from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, SensorConfig, ground_truth, simulate
@@ -87,6 +88,8 @@ class RealVideoWindow:
 
     clip: str
     speed_bin: str
+    speed: float
+    """The scene's speed, px a spike frame (:attr:`RealVideoScene.speed`)."""
     seed: int
     spikes: np.ndarray
     """``(FILM_FRAMES, H, W) uint8`` 0/1."""
@@ -131,20 +134,52 @@ def film(scene: RealVideoScene, seed: int) -> RealVideoWindow:
     rng = np.random.default_rng([seed_of("real video"), seed])
     spikes = simulate(scene.scene, FILM_FRAMES, SensorConfig.ideal(), rng)
     truth = ground_truth(scene.scene, [CENTER_FRAME])[0]
-    return RealVideoWindow(scene.clip, scene.speed_bin, seed, spikes, truth)
+    return RealVideoWindow(scene.clip, scene.speed_bin, scene.speed, seed, spikes, truth)
 
 
 def real_video_set(
     folders: list[str | Path], seeds: int = SEEDS, speed_bins: tuple[str, ...] = tuple(SPEEDS)
-) -> tuple[list[RealVideoScene], list[RealVideoWindow]]:
-    """Each clip of :data:`REAL_VIDEO_CLIPS` under ``folders`` at each speed bin, and its window
-    filmed once per seed ``0 .. seeds - 1``; both empty when ``folders`` hold none of the
-    clips."""
-    scenes, windows = [], []
+) -> list[RealVideoWindow]:
+    """The window of each clip of :data:`REAL_VIDEO_CLIPS` under ``folders`` at each speed bin,
+    filmed once per seed ``0 .. seeds - 1`` (clip by clip, bin by bin); empty when ``folders``
+    hold none of the clips."""
+    windows = []
     for clip in find_real_video_clips(folders):
         frames = load_clip(clip)
         for speed_bin in speed_bins:
             scene = real_video_scene(clip.name, frames, speed_bin)
-            scenes.append(scene)
             windows += [film(scene, seed) for seed in range(seeds)]
-    return scenes, windows
+    return windows
+
+
+def real_video_scores(windows: list[RealVideoWindow], images: list[np.ndarray]) -> dict:
+    """PSNR (dB) and SSIM of one method's ``images`` (one ``(H, W)`` image per window, in order):
+    over all windows (``psnr``, ``ssim``); the overall PSNR of each seed (``seed_psnr``) and
+    their standard deviation (``seed_std_db``); per speed bin (``speed_bins[bin]``: ``psnr``,
+    ``ssim``, the standard deviation of the per-clip means ``clip_std_db``, and ``clips[clip]``:
+    ``psnr``, ``ssim`` over its seeds)."""
+    scores = image_scores(images, [w.truth for w in windows])
+    seeds = sorted({w.seed for w in windows})
+    per_seed = [
+        mean_scores([s for s, w in zip(scores, windows, strict=True) if w.seed == seed])["psnr"]
+        for seed in seeds
+    ]
+    clips = list(dict.fromkeys(w.clip for w in windows))
+    per_bin = {}
+    for speed_bin in SPEEDS:
+        picked = [(s, w) for s, w in zip(scores, windows, strict=True) if w.speed_bin == speed_bin]
+        if not picked:
+            continue
+        by_clip = group_scores([s for s, _ in picked], [w.clip for _, w in picked], clips)
+        clip_psnr = [v["psnr"] for v in by_clip.values()]
+        per_bin[speed_bin] = {
+            **mean_scores([s for s, _ in picked]),
+            "clip_std_db": float(np.std(clip_psnr)),
+            "clips": by_clip,
+        }
+    return {
+        **mean_scores(scores),
+        "seed_psnr": per_seed,
+        "seed_std_db": float(np.std(per_seed)),
+        "speed_bins": per_bin,
+    }

@@ -68,6 +68,11 @@ def tfp_best_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return max(candidates, key=lambda image: psnr(image, truth))
 
 
+def tfp_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """TFP over the whole window (41 frames) at its centre."""
+    return tfp(spikes, [CENTER_FRAME], len(spikes))[0]
+
+
 def tfi_window(spikes: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """TFI at the window's centre (its spike search spans the 41 frames)."""
     return tfi(spikes, [CENTER_FRAME])[0]
