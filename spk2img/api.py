@@ -28,14 +28,13 @@ from spk2img.errors import InputError
 from spk2img.io import spikes as _spikes
 from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
 from spk2img.model.config import PUBLISHED_GEOMETRY, Geometry
-from spk2img.runtime.adaptive import QUALITIES, check_quality
+from spk2img.runtime.adaptive import QUALITIES
 from spk2img.runtime.binning import suggest_binning
 from spk2img.runtime.loader import LoadedNetwork, load_network
 from spk2img.runtime.methods import (
     DEFAULT_TFP_WINDOW,
     METHODS,
     build_reconstructor,
-    check_method,
     method_window,
 )
 from spk2img.runtime.stream import StreamingReconstructor, collect, frame_chunks
@@ -156,9 +155,8 @@ class Reconstructor:
         batch: int = 1,
         binning: int = 1,
     ):
-        self.method, self.quality = check_method(method), check_quality(quality)
-        method_window(method, window, binning, quality)  # checks them before a model loads
-        self.binning = binning
+        method_window(method, window, binning, quality)  # the one check, before a model loads
+        self.method, self.quality, self.binning = method, quality, binning
         runs_network = method == "net" and quality != "fast"
         if device != "cpu" and not runs_network:
             raise InputError(f"device {device!r} is for method net with quality best or balanced")

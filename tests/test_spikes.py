@@ -111,3 +111,24 @@ def test_errors_are_clear(tmp_path):
         read_spikes(tmp_path / "missing.dat")
     with pytest.raises(SpikeFormatError, match="0 or 1"):
         write_spikes(tmp_path / "bad.npy", np.full((2, 3, 3), 2))
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "words"),
+    [
+        ("empty.npy", b"", "the file is empty"),
+        ("empty.npz", b"", "the file is empty"),
+        ("text.npz", b"frame 1: 0 1 1 0\n", "not a .npz archive"),
+        ("text.npy", b"frame 1: 0 1 1 0\n", "not a .npy array file"),
+    ],
+)
+def test_empty_or_foreign_files_get_one_line_and_exit_2(tmp_path, capsys, name, content, words):
+    from spk2img.cli import main
+
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(SpikeFormatError, match=words):
+        read_spikes(path)
+    assert main(["reconstruct", str(path), "--out", str(tmp_path / "o.npz"), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and "\n" not in err and "pickle" not in err and "Traceback" not in err

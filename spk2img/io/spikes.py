@@ -7,6 +7,7 @@ first. In memory a stream is ``(T, H, W) uint8`` of 0/1, upright, time first.
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -174,20 +175,28 @@ def read_spikes(
     suffix = path.suffix.lower()
     if suffix == ".dat":
         return DatStream(path, height, width)
+    if suffix in (".npy", ".npz") and path.stat().st_size == 0:
+        raise SpikeFormatError(f"{path}: the file is empty")
     if suffix == ".npy":
         try:
             arr = np.load(path, mmap_mode="r", allow_pickle=False)
-        except ValueError as exc:
-            raise SpikeFormatError(f"{path}: not a readable .npy array ({exc})") from exc
+        except (ValueError, EOFError, OSError):
+            raise SpikeFormatError(
+                f"{path}: not a .npy array file (numpy.save writes one)"
+            ) from None
         return _checked_array(arr, path)
     if suffix == ".npz":
+        if not zipfile.is_zipfile(path):
+            raise SpikeFormatError(
+                f"{path}: not a .npz archive (a zip of .npy arrays, as numpy.savez writes)"
+            )
         try:
             with np.load(path, allow_pickle=False) as npz:
                 named = [k for k in ("spk", "spikes") if k in npz.files]
                 if not named and len(npz.files) != 1:
                     raise SpikeFormatError(f"{path}: holds {npz.files}; expected a 'spk' array")
                 arr = npz[(named or npz.files)[0]]
-        except (ValueError, OSError) as exc:
+        except (ValueError, EOFError, OSError, zipfile.BadZipFile) as exc:
             raise SpikeFormatError(f"{path}: not a readable .npz archive ({exc})") from exc
         return _checked_array(arr, path)
     raise SpikeFormatError(f"{path}: unknown spike file type {suffix!r} (use .dat, .npy or .npz)")
