@@ -59,7 +59,8 @@ REAL_VIDEO_CLIPS = X4K_CLIPS + VID4_CLIPS
 """The clips of the real-video validation, by folder name."""
 SPEEDS = {"benchmark": 0.14, "fast": 1.0}
 """Speed bin -> median flow magnitude in px a spike frame: the benchmark's camera pans, and
-ten times faster motion."""
+about seven times faster motion (capped, like any bin, by what a window in the clip allows:
+0.19-0.94 px a spike frame on these clips)."""
 SEEDS = 3
 """Draws of the sensor's initial charge per window by default."""
 
