@@ -15,7 +15,7 @@ A case passes when ``max_abs <= atol`` and ``nonfinite == 0``. A reduced-precisi
 GPU's precision, docs/gpu.md) cannot hold float32's ``atol``: its cases pass when
 ``psnr_db >= MIN_PSNR_VS_FP32`` (30 dB, the bar ``export`` sets such graphs against fp32) and
 ``nonfinite == 0``, and every case reports its errors all the same. ``device`` runs the
-onnxruntime side on a GPU (:func:`spk2img.runtime.onnx_backend.create_session`).
+onnxruntime side on a GPU (:func:`spk2img.runtime.loader.load_network`).
 """
 
 from __future__ import annotations
@@ -34,13 +34,12 @@ import torch
 from spk2img.errors import InputError
 from spk2img.evaluation.metrics import psnr
 from spk2img.model.network import Spk2ImgNet
-from spk2img.runtime.onnx_backend import create_session
+from spk2img.runtime.loader import load_network
 
 from .block_graphs import stream_block_graphs, whole_windows
 from .hard_cases import Case, far_offset_copy
 from .metadata import weights_sha256
 from .onnx_export import (
-    INPUT_NAME,
     ExportConfig,
     ExportSource,
     checkpoint_source,
@@ -226,12 +225,14 @@ def verify_onnx(
                     case.threads if precision == "fp32" and device == "cpu" else case.threads[:1]
                 )
                 for threads in counts:
-                    session = create_session(path, threads, device)
+                    graph = load_network(
+                        path, device=device, threads=threads, block_reuse=False, warm_up=False
+                    ).predict  # the graph as the runtime loads it, on this case alone
                     start = time.perf_counter()
-                    output = session.session.run(None, {INPUT_NAME: spikes})[0][:, 0]
+                    output = graph(spikes)
                     onnx_s = time.perf_counter() - start
-                    where = session.device
-                    del session
+                    where = graph.device
+                    del graph
                     scores = compare_outputs(reference, output)
                     result = CaseResult(
                         case.name,

@@ -1,7 +1,8 @@
 """Loading a network for inference: the one place that turns a model name or file, a backend and
-a device into something ready to reconstruct frames: the API, the service, the bench and the
-model cards load through :func:`load_network` (``spk2img verify`` opens graph files itself, as
-checking them is its job).
+a device into something ready to reconstruct frames: the API, the service, the bench, the model
+cards and ``spk2img verify`` load through :func:`load_network` (verify streams the block graphs
+of a reduced-precision variant, which has no one-shot graph beside it, through
+:class:`~spk2img.runtime.block_codec.OnnxBlockCodec` itself).
 
 A :class:`LoadedNetwork` holds the network on whole windows (onnxruntime's
 :class:`~spk2img.runtime.onnx_backend.OnnxModel` or torch's
