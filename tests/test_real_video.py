@@ -18,7 +18,7 @@ from spk2img.evaluation.real_video import (
     display_light,
     film,
     find_real_video_clips,
-    real_video_scene,
+    real_video_scenes,
     real_video_scores,
     real_video_set,
 )
@@ -52,7 +52,7 @@ def test_display_light_is_the_frame_value_over_255(grey):
 @pytest.mark.parametrize("speed_bin", list(SPEEDS))
 def test_the_clip_moves_at_the_bin_speed_where_it_is_long_enough(speed_bin):
     frames = moving_texture(20, 1.0)
-    scene = real_video_scene("synthetic", frames, speed_bin)
+    (scene,) = real_video_scenes("synthetic", frames, (speed_bin,), FILM_FRAMES)
     per_interval = scene.scene.frames_per_interval
     measured = scene.speed * per_interval  # the clip's median flow, px a video frame
     assert measured == pytest.approx(1.0, abs=0.1)
@@ -69,7 +69,7 @@ def test_the_clip_moves_at_the_bin_speed_where_it_is_long_enough(speed_bin):
 def test_a_still_clip_fires_at_0_6_value_over_255_and_its_truth_is_the_frame():
     value = 200
     frames = tuple(np.full((H, W), value, np.uint8) for _ in range(5))
-    scene = real_video_scene("still", frames, "benchmark")
+    (scene,) = real_video_scenes("still", frames, ("benchmark",), FILM_FRAMES)
     window = film(scene, seed=0)
     assert window.spikes.shape == (FILM_FRAMES, H - 2 * CLIP_MARGIN, W - 2 * CLIP_MARGIN)
     rate = window.spikes.mean(axis=0)
@@ -108,6 +108,10 @@ def test_the_set_films_every_clip_at_every_bin_and_seed(data_dir):
     ]
     for w in windows:
         assert set(np.unique(w.spikes)) <= {0, 1} and np.isfinite(w.truth).all()
+        assert w.spikes.shape == (FILM_FRAMES, H - 2 * CLIP_MARGIN, W - 2 * CLIP_MARGIN)
+    cropped = real_video_set([data_dir], seeds=1, size=(16, 24))
+    assert [w.spikes.shape for w in cropped] == [(FILM_FRAMES, 16, 24)] * 4
+    assert [w.truth.shape for w in cropped] == [(16, 24)] * 4
 
 
 def test_scores_per_bin_clip_and_seed_and_the_cards_section():

@@ -31,7 +31,7 @@ import numpy as np
 
 from spk2img.evaluation.scoring import group_scores, image_scores, mean_scores
 from spk2img.evaluation.window_sets import seed_of
-from spk2img.sim.natural_scenes import ClipScene, dis_flow
+from spk2img.sim.natural_scenes import CLIP_MARGIN, ClipScene, dis_flow
 from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, SensorConfig, ground_truth, simulate
 from spk2img.sim.sources import FrameFolder, SourceIndex, load_clip
 
@@ -98,26 +98,39 @@ class RealVideoWindow:
     """``(H, W) float32`` light at the centre frame."""
 
 
-def real_video_scene(
-    name: str, frames: tuple[np.ndarray, ...], speed_bin: str, window: int = FILM_FRAMES
-) -> RealVideoScene:
-    """Clip ``name``'s ``(H, W) uint8`` frames as a scene moving at ``SPEEDS[speed_bin]`` px a
-    spike frame (or as fast as a ``window``-frame window in the clip allows), the window in the
-    middle of the clip, light by :func:`display_light`."""
+def real_video_scenes(
+    name: str, frames: tuple[np.ndarray, ...], speed_bins: tuple[str, ...], window: int
+) -> list[RealVideoScene]:
+    """Clip ``name``'s ``(H, W) uint8`` frames as a scene at each of ``speed_bins``: moving at
+    ``SPEEDS[bin]`` px a spike frame (or as fast as a ``window``-frame window in the clip
+    allows), the window in the middle of the clip, light by :func:`display_light`; the clip's
+    flows computed once."""
     if len(frames) < 2:
         raise ValueError(f"clip {name} has {len(frames)} frame(s): at least 2 are needed")
     forward = np.stack([dis_flow(a, b) for a, b in zip(frames, frames[1:], strict=False)])
     backward = np.stack([dis_flow(b, a) for a, b in zip(frames, frames[1:], strict=False)])
+    light = np.stack([display_light(f) for f in frames])
     per_video_frame = float(np.median(np.linalg.norm(forward, axis=-1)))
     intervals = len(frames) - 1
-    per_interval = max(window / intervals, per_video_frame / SPEEDS[speed_bin])
-    start = (intervals * per_interval - window) / 2  # the window in the middle of the clip
-    light = np.stack([display_light(f) for f in frames])
-    speed = per_video_frame / per_interval
-    meta = {"kind": "real video", "clip": name, "speed": speed, "speed_bin": speed_bin}
-    meta["frames_per_interval"] = per_interval
-    scene = ClipScene(light, forward, backward, per_interval, start, meta)
-    return RealVideoScene(name, speed_bin, speed, scene)
+    scenes = []
+    for speed_bin in speed_bins:
+        per_interval = max(window / intervals, per_video_frame / SPEEDS[speed_bin])
+        start = (intervals * per_interval - window) / 2  # the window in the middle of the clip
+        speed = per_video_frame / per_interval
+        meta = {"kind": "real video", "clip": name, "speed": speed, "speed_bin": speed_bin}
+        meta["frames_per_interval"] = per_interval
+        scene = ClipScene(light, forward, backward, per_interval, start, meta)
+        scenes.append(RealVideoScene(name, speed_bin, speed, scene))
+    return scenes
+
+
+def centre_crop(frames: tuple[np.ndarray, ...], size: tuple[int, int]) -> tuple[np.ndarray, ...]:
+    """The centred ``size`` (height, width) of each frame, plus the flow's margin on each side
+    (the whole frame where it is smaller)."""
+    height, width = frames[0].shape
+    h, w = (min(s + 2 * CLIP_MARGIN, full) for s, full in zip(size, (height, width), strict=True))
+    top, left = (height - h) // 2, (width - w) // 2
+    return tuple(f[top : top + h, left : left + w] for f in frames)
 
 
 def find_real_video_clips(folders: list[str | Path]) -> list[FrameFolder]:
@@ -139,16 +152,22 @@ def film(scene: RealVideoScene, seed: int) -> RealVideoWindow:
 
 
 def real_video_set(
-    folders: list[str | Path], seeds: int = SEEDS, speed_bins: tuple[str, ...] = tuple(SPEEDS)
+    folders: list[str | Path],
+    seeds: int = SEEDS,
+    speed_bins: tuple[str, ...] = tuple(SPEEDS),
+    size: tuple[int, int] | None = None,
 ) -> list[RealVideoWindow]:
     """The window of each clip of :data:`REAL_VIDEO_CLIPS` under ``folders`` at each speed bin,
     filmed once per seed ``0 .. seeds - 1`` (clip by clip, bin by bin); empty when ``folders``
-    hold none of the clips."""
+    hold none of the clips. ``size`` (height, width): the centred crop of each clip to film
+    (:func:`centre_crop`; its motion measured there), a cheaper set for validating during
+    training; None: the whole frames."""
     windows = []
     for clip in find_real_video_clips(folders):
         frames = load_clip(clip)
-        for speed_bin in speed_bins:
-            scene = real_video_scene(clip.name, frames, speed_bin)
+        if size is not None:
+            frames = centre_crop(frames, size)
+        for scene in real_video_scenes(clip.name, frames, speed_bins, FILM_FRAMES):
             windows += [film(scene, seed) for seed in range(seeds)]
     return windows
 

@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from spk2img.errors import InputError
 from spk2img.evaluation.natural_validation import NEVER_TRAINED, natural_validation_set
+from spk2img.evaluation.real_video import real_video_scores, real_video_set
 from spk2img.evaluation.scoring import baseline_scores, network_scorer, score, validation_set
 from spk2img.model.checkpoint import (
     config_to_dict,
@@ -102,10 +103,19 @@ class TrainConfig:
         check_final_term(self.loss)
 
 
-def selection_set(ideal_share: float, natural: bool) -> str:
-    """What ``best.pt`` is chosen on: the natural validation in the sensor regime the run films
-    (``natural ideal`` for an ideal share of 1, ``natural fitted`` for 0, ``natural``, both, in
-    between); ``procedural`` without natural data."""
+REAL_VIDEO_VAL_SIZE = (96, 128)
+"""Height and width of the centre crops of the real-video clips validated on during training
+(the whole frames are scored by the model card and scripts/real_video_validation.py)."""
+
+
+def selection_set(ideal_share: float, natural: bool, real_video: bool = False) -> str:
+    """What ``best.pt`` is chosen on: for a noise-free run (ideal share 1) the real-video
+    validation when its clips are in the data (``real video``: the set that predicts scores on
+    real video); else the natural validation in the sensor regime the run films (``natural
+    ideal`` for an ideal share of 1, ``natural fitted`` for 0, ``natural``, both, in between);
+    ``procedural`` without natural data."""
+    if real_video and ideal_share == 1:
+        return "real video"
     if not natural:
         return "procedural"
     regime = {1: "ideal", 0: "fitted"}.get(ideal_share)
@@ -116,6 +126,8 @@ def selection_score(val: dict, selection: str) -> float:
     """The PSNR (dB) of a validation record ``val`` that :func:`selection_set` names."""
     if selection == "procedural":
         return val["psnr"]
+    if selection == "real video":
+        return val["real_video"]["psnr"]
     regime = selection.removeprefix("natural").strip()
     return val["natural"][f"psnr_{regime}" if regime else "psnr"]
 
@@ -124,6 +136,8 @@ def selection_words(selection: str) -> str:
     """The score :func:`selection_set` names, in words (for the model card)."""
     if selection == "procedural":
         return "the procedural validation's PSNR"
+    if selection == "real video":
+        return "the real-video validation's PSNR (crops of the held-out real clips)"
     regime = selection.removeprefix("natural").strip()
     return f"its {regime}-regime PSNR" if regime else "the mean PSNR of both regimes"
 
@@ -203,6 +217,8 @@ def train(cfg: TrainConfig) -> dict:
     if run.main:
         val_sets["natural"] = natural_validation_set(cfg.data) if cfg.data else []
         val_sets["procedural"] = validation_set(cfg.val_per_class)
+        real_video = real_video_set(cfg.data, seeds=1, size=REAL_VIDEO_VAL_SIZE) if cfg.data else []
+        val_sets["real_video"] = real_video
         log.write(
             kind="data",
             step=start,
@@ -210,8 +226,11 @@ def train(cfg: TrainConfig) -> dict:
             mix=dict(zip(("procedural", "photos", "clips"), maker.weights.tolist(), strict=True)),
             real_sensor=dataclasses.asdict(real_sensor),
             natural_validation_scenes=len(val_sets["natural"]),
+            real_video_windows=len(val_sets["real_video"]),
         )
-    selection = selection_set(cfg.ideal_share, bool(val_sets.get("natural")))
+    selection = selection_set(
+        cfg.ideal_share, bool(val_sets.get("natural")), bool(val_sets.get("real_video"))
+    )
     best = -math.inf
     if run.main and start == 0:
         log.write(kind="baselines", **baseline_scores(val_sets["procedural"]))
@@ -289,6 +308,8 @@ def train(cfg: TrainConfig) -> dict:
                 val = validate(model, val_sets["procedural"])
                 if val_sets["natural"]:
                     val["natural"] = validate(model, val_sets["natural"])
+                if val_sets["real_video"]:
+                    val["real_video"] = validate_real_video(model, val_sets["real_video"])
                 log.write(kind="val", step=done, wall_s=wall, **val)
                 chosen = selection_score(val, selection)
                 if chosen > best:
@@ -345,14 +366,28 @@ def training_device(name: str) -> torch.device:
 
 def validate(model: Spk2ImgNet, scenes) -> dict:
     """Validation PSNR/SSIM of ``model`` (switched to eval mode) on ``scenes``."""
+    with torch.inference_mode():
+        return score(_scorer(model), scenes)
+
+
+def validate_real_video(model: Spk2ImgNet, windows: list) -> dict:
+    """:func:`~spk2img.evaluation.real_video.real_video_scores` of ``model`` (switched to eval
+    mode) on the real-video ``windows``."""
+    with torch.inference_mode():
+        net = _scorer(model)
+        return real_video_scores(windows, [net(w.spikes, w.truth) for w in windows])
+
+
+def _scorer(model: Spk2ImgNet):
+    """``model`` in eval mode as a ``(spikes, truth) -> (H, W) image`` method (evaluation.scoring),
+    reading the centred crop of its own window."""
     model.eval()
     device = next(model.parameters()).device
-    with torch.inference_mode():
 
-        def predict(windows: np.ndarray) -> np.ndarray:
-            return model(torch.from_numpy(windows).to(device))[0][:, 0].float().cpu().numpy()
+    def predict(windows: np.ndarray) -> np.ndarray:
+        return model(torch.from_numpy(windows).to(device))[0][:, 0].float().cpu().numpy()
 
-        return score(network_scorer(predict), scenes)
+    return network_scorer(predict, model.config.geometry)
 
 
 def replica_difference(model: torch.nn.Module) -> float:
