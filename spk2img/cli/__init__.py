@@ -20,6 +20,7 @@ from spk2img.errors import InputError
 
 SUBCOMMANDS = [
     "reconstruct",
+    "inspect",
     "simulate",
     "fit-sensor",
     "models",

@@ -10,7 +10,8 @@ import numpy as np
 from spk2img import api
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.errors import InputError
-from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH
+from spk2img.io.frame_size import check_frame_size
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
 from spk2img.runtime.adaptive import QUALITIES, BalancedStream
 from spk2img.runtime.binning import binning_for_rates, firing_rates
 from spk2img.runtime.block_stream import BlockReuseStream
@@ -31,6 +32,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, required=True, help="output .npz")
     p.add_argument("--height", type=int, default=DEFAULT_HEIGHT, help="frame height of a .dat")
     p.add_argument("--width", type=int, default=DEFAULT_WIDTH, help="frame width of a .dat")
+    p.add_argument(
+        "--force-size",
+        action="store_true",
+        help="read a .dat at --height x --width even when its spikes look like noise at that "
+        "size (by default such a size is refused with the likely sizes; spk2img inspect lists "
+        "them)",
+    )
     which = p.add_mutually_exclusive_group()
     which.add_argument("--centers", help="comma-separated centre frames, e.g. 40,80,120")
     which.add_argument(
@@ -99,6 +107,8 @@ def run(args: argparse.Namespace) -> int:
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
     spikes = api.read_spikes(args.input, args.height, args.width)
+    if isinstance(spikes, DatStream) and not args.force_size:
+        check_frame_size(args.input, args.height, args.width)
     if args.method == "net" and args.quality == "best":
         args.binning = _choose_binning(args, spikes)
     how = ""
