@@ -221,3 +221,22 @@ def test_two_process_data_parallel_keeps_replicas_identical(tmp_path):
     assert rec["max_abs_diff"] == 0.0
     # the replicas trained on different data: the weights moved from their initial values
     assert load_checkpoint(tmp_path / "last.pt")["step"] == 3
+
+
+def test_train_help_gives_every_flag_its_default_and_a_run_ends_with_a_summary(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "(choices: paper, small, lite, tiny; default: tiny)" in help_text
+    assert "(choices: l1, psnr; default: l1)" in help_text and "(default: 20000)" in help_text
+    run = tmp_path / "run"
+    flags = "--member tiny --steps 2 --patch 16 --batch-size 2 --val-every 2 --val-per-class 1"
+    assert main(["train", *flags.split(), "--workers", "0", "--run-dir", str(run)]) == 0
+    err = capsys.readouterr().err
+    records = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    (summary,) = [r for r in records if r["kind"] == "summary"]
+    assert summary["best_checkpoint"] == str(run / "best.pt") and (run / "best.pt").is_file()
+    assert summary["val_set"] == "procedural"
+    assert summary["best_psnr"] == summary["last_validation"]["psnr"]
+    assert f"best checkpoint {run / 'best.pt'} (procedural validation, " in err
+    assert f"{summary['best_psnr']:.2f} dB" in err

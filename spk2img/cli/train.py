@@ -11,48 +11,38 @@ import sys
 
 from spk2img.cli.extras import needs_extra
 from spk2img.errors import InputError
+from spk2img.training.config import TrainConfig
 
-
-def _fields():
-    from spk2img.training.train import TrainConfig
-
-    return TrainConfig, dataclasses.fields(TrainConfig)
+NOT_FLAGS = ("data", "progress")
+"""Fields set by flags of their own: ``--data DIR`` (repeatable) and ``--no-progress``."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "train", help="train a model on simulated spike streams", description=__doc__
+        "train",
+        help="train a model on simulated spike streams",
+        description=__doc__,
     )
-    # the flags mirror TrainConfig; their defaults are filled in at run time so that the
-    # parser can be built without importing torch
-    for name, kind in [
-        ("member", str),
-        ("run-dir", str),
-        ("steps", int),
-        ("batch-size", int),
-        ("patch", int),
-        ("lr", float),
-        ("warmup-steps", int),
-        ("loss", str),
-        ("seed", int),
-        ("data-mix", str),
-        ("sensor-preset", str),
-        ("ideal-share", float),
-        ("workers", int),
-        ("device", str),
-        ("val-every", int),
-        ("val-per-class", int),
-        ("checkpoint-every", int),
-        ("threads", int),
-        ("log-every", int),
-        ("init", str),
-    ]:
-        p.add_argument(f"--{name}", type=kind, default=None)
+    # the flags mirror TrainConfig; they default to None so that only the flags given override
+    # the config (a resumed run keeps its own); the help shows the config's defaults
+    for f in dataclasses.fields(TrainConfig):
+        if f.name in NOT_FLAGS:
+            continue
+        choices = f.metadata["choices"]  # checked by TrainConfig, with its own messages
+        among = f"choices: {', '.join(choices)}; " if choices else ""
+        p.add_argument(
+            f"--{f.name.replace('_', '-')}",
+            type=type(f.default),
+            default=None,
+            metavar=f.name.upper(),
+            help=f"{f.metadata['help']} ({among}default: {f.default})",
+        )
     p.add_argument(
         "--data",
         action="append",
         metavar="DIR",
-        help="a folder of photographs and clips to train on (repeatable)",
+        help="a folder of photographs and clips to train on (repeatable; none: procedural "
+        "scenes only)",
     )
     p.add_argument(
         "--no-progress",
@@ -63,22 +53,30 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     with needs_extra("train", "training"):
-        config_cls, fields = _fields()
-    from spk2img.model.config import MEMBERS
+        from spk2img.training.train import train
     from spk2img.training.data import DataMix
-    from spk2img.training.train import train
 
+    fields = dataclasses.fields(TrainConfig)
     values = {
         f.name: getattr(args, f.name) for f in fields if getattr(args, f.name, None) is not None
     }
     if args.no_progress or not sys.stderr.isatty():
         values["progress"] = False
     try:
-        cfg = config_cls(**values)
+        cfg = TrainConfig(**values)
         DataMix.parse(cfg.data_mix)
     except ValueError as exc:
         raise InputError(str(exc)) from exc
-    if cfg.member not in MEMBERS:
-        raise InputError(f"unknown member {cfg.member!r}: choose one of {', '.join(MEMBERS)}")
-    train(cfg)
+    summary = train(cfg)
+    if summary["last_validation"]:
+        last = summary["last_validation"]
+        print(
+            f"trained {cfg.member} to step {summary['steps']} in {summary['wall_s'] / 3600:.2f} h "
+            f"of optimiser steps; best checkpoint {summary['best_checkpoint']} "
+            f"({summary['val_set']} validation, {summary['best_psnr']:.2f} dB); last validation: "
+            f"procedural {last['psnr']:.2f} dB"
+            + (f", natural {last['natural']['psnr']:.2f} dB" if "natural" in last else "")
+            + (f", real video {last['real_video']['psnr']:.2f} dB" if "real_video" in last else ""),
+            file=sys.stderr,
+        )
     return 0

@@ -23,6 +23,8 @@ from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, random_s
 from spk2img.sim.simulator import SensorConfig, ground_truth, simulate
 from spk2img.sim.sources import SourceIndex, load_clip, load_photo
 
+from .config import check_ideal_share
+
 KINDS = ("procedural", "photos", "clips")
 
 
@@ -61,12 +63,6 @@ def augment(spikes: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
     if rng.integers(2):
         spikes, truth = spikes[:, :, ::-1], truth[:, :, ::-1]
     return spikes, truth
-
-
-def check_ideal_share(share: float) -> None:
-    """``ValueError`` unless ``share`` (of the samples the ideal sensor films) is in [0, 1]."""
-    if not 0 <= share <= 1:
-        raise ValueError(f"--ideal-share {share}: the ideal sensor's share must be in [0, 1]")
 
 
 class SampleMaker:

@@ -5,16 +5,11 @@ from __future__ import annotations
 
 import torch
 
+from .config import check_final_term
+
 INTERMEDIATE_WEIGHT = 0.02  # λ of the paper
-FINAL_TERMS = ("l1", "psnr")
 PSNR_FLOOR_MSE = 1e-6
 """Added to each window's squared error before the logarithm: PSNR saturates at 60 dB."""
-
-
-def check_final_term(final: str) -> None:
-    """``ValueError`` unless ``final`` is one of :data:`FINAL_TERMS` (``spk2img train --loss``)."""
-    if final not in FINAL_TERMS:
-        raise ValueError(f"--loss {final}: use one of {', '.join(FINAL_TERMS)}")
 
 
 def hierarchical_loss(

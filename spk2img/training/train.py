@@ -12,7 +12,6 @@ import os
 import platform
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -38,69 +37,11 @@ from spk2img.provenance import git_commit
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.sim.sources import SourceIndex
 
-from .data import Batches, DataMix, SampleMaker, check_ideal_share
-from .loss import check_final_term, hierarchical_loss
+from .config import TrainConfig
+from .data import Batches, DataMix, SampleMaker
+from .loss import hierarchical_loss
 
 CHECKPOINT_SECONDS = 600.0
-
-
-@dataclass
-class TrainConfig:
-    """One training run; every field is a ``spk2img train`` flag of the same name."""
-
-    member: str = "tiny"
-    """Family member to train (``spk2img models`` lists them)."""
-    run_dir: str = "runs/default"
-    """Where ``last.pt``, ``best.pt``, ``metrics.jsonl`` go; an existing ``last.pt`` is resumed."""
-    steps: int = 20_000
-    """Optimiser steps in all (a resumed run continues up to this)."""
-    batch_size: int = 8
-    """Windows per step and per process."""
-    patch: int = 64
-    """Side of the square training patches (a multiple of 4)."""
-    lr: float = 5e-4
-    """Peak Adam learning rate (after a linear warm-up); decays by a cosine to 2 % of it."""
-    warmup_steps: int = 200
-    loss: str = "l1"
-    """The final image's term of the hierarchical loss: ``l1``, the paper's; ``psnr``, minus the
-    windows' mean PSNR, the validation's own measure (a last fine-tune of a trained model)."""
-    seed: int = 0
-    """Seed of the initial weights and of every batch (batches are a function of seed and step)."""
-    data: list[str] = field(default_factory=list)
-    """Folders of photographs and clips (:mod:`spk2img.sim.sources`); none: procedural
-    content only. The held-out sources of the natural validation are never trained on."""
-    data_mix: str = "photos=0.5,clips=0.3,procedural=0.2"
-    """Shares of photo, clip and procedural samples (natural kinds need ``--data``)."""
-    sensor_preset: str = ""
-    """The real-like regime's sensor preset (JSON of ``spk2img fit-sensor``); empty: the one
-    fitted to a real PKU capture that ships with spk2img."""
-    ideal_share: float = 0.5
-    """Share of the samples filmed by the noise-free sensor; the others by the real-like one
-    (1: noise-free only, as simulated datasets such as spike-REDS are)."""
-    workers: int = 1
-    """Processes that make the batches ahead (0: in the training process)."""
-    device: str = "cpu"
-    """``cpu`` or ``cuda`` (bf16 autocast on CUDA)."""
-    val_every: int = 500
-    """Steps between validations (PSNR/SSIM on the natural and the procedural sets)."""
-    val_per_class: int = 2
-    """Validation scenes per (motion, brightness) class; 9 classes."""
-    checkpoint_every: int = 100
-    """Steps between checkpoints (``last.pt``); one is also written every 10 minutes."""
-    threads: int = 1
-    """Torch intra-op threads per process."""
-    log_every: int = 10
-    """Steps between metrics lines."""
-    progress: bool = True
-    """Show a progress bar on stderr."""
-    init: str = ""
-    """A checkpoint of the same member whose weights start the run (fine-tuning, e.g. the
-    shipped model on your own footage); the optimiser and the schedule start afresh. Empty:
-    random weights from ``seed``. Not read when ``run_dir`` holds a ``last.pt`` to resume."""
-
-    def __post_init__(self) -> None:
-        check_ideal_share(self.ideal_share)
-        check_final_term(self.loss)
 
 
 REAL_VIDEO_VAL_SIZE = (96, 128)
@@ -166,7 +107,10 @@ class _Run:
 
 
 def train(cfg: TrainConfig) -> dict:
-    """Run (or resume) training; returns the last validation scores (rank 0) or ``{}``."""
+    """Run (or resume) training; returns (and logs, as the ``summary`` record) where the run and
+    its best checkpoint are, what the best was chosen on and scored, the wall time of optimiser
+    steps and the last validation's scores (empty on ranks other than 0, which do not
+    validate)."""
     device = training_device(cfg.device)
     run = _Run()
     torch.set_num_threads(cfg.threads)
@@ -328,7 +272,18 @@ def train(cfg: TrainConfig) -> dict:
         if run.main:
             log.write(kind="replicas", world_size=run.world, max_abs_diff=diff)
     run.close()
-    return val
+    summary = {
+        "run_dir": str(run_dir),
+        "steps": cfg.steps,
+        "wall_s": wall,
+        "best_checkpoint": str(run_dir / "best.pt"),
+        "val_set": selection,
+        "best_psnr": best,
+        "last_validation": val,
+    }
+    if run.main:
+        log.write(kind="summary", **summary)
+    return summary
 
 
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:

@@ -1,0 +1,101 @@
+"""What one training run is: :class:`TrainConfig`, whose every field is a ``spk2img train`` flag
+with its help, default and choices (pure Python: the command line reads it without torch)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from spk2img.model.config import MEMBERS
+
+FINAL_TERMS = ("l1", "psnr")
+"""The final image's term of the hierarchical loss (``--loss``)."""
+DEVICES = ("cpu", "cuda")
+"""Where a run trains (``--device``)."""
+
+
+def check_final_term(final: str) -> None:
+    """``ValueError`` unless ``final`` is one of :data:`FINAL_TERMS` (``spk2img train --loss``)."""
+    if final not in FINAL_TERMS:
+        raise ValueError(f"--loss {final}: use one of {', '.join(FINAL_TERMS)}")
+
+
+def check_ideal_share(share: float) -> None:
+    """``ValueError`` unless ``share`` (of the samples the ideal sensor films) is in [0, 1]."""
+    if not 0 <= share <= 1:
+        raise ValueError(f"--ideal-share {share}: the ideal sensor's share must be in [0, 1]")
+
+
+def flag(default: Any, help: str, choices: tuple[str, ...] | None = None) -> Any:
+    """A :class:`TrainConfig` field with its command-line ``help`` and ``choices``."""
+    return field(default=default, metadata={"help": help, "choices": choices})
+
+
+@dataclass
+class TrainConfig:
+    """One training run; every field is a ``spk2img train`` flag of the same name (its help in
+    the field's metadata)."""
+
+    member: str = flag("tiny", "family member to train", tuple(MEMBERS))
+    run_dir: str = flag(
+        "runs/default", "where last.pt, best.pt and metrics.jsonl go; a last.pt there is resumed"
+    )
+    steps: int = flag(20_000, "optimiser steps in all (a resumed run continues up to this)")
+    batch_size: int = flag(8, "windows per step and per process")
+    patch: int = flag(64, "side of the square training patches in pixels (a multiple of 4)")
+    lr: float = flag(
+        5e-4,
+        "peak Adam learning rate, after a linear warm-up; a cosine decays it to 2 percent of it",
+    )
+    warmup_steps: int = flag(200, "steps of the learning rate's linear warm-up")
+    loss: str = flag(
+        "l1",
+        "the final image's term of the hierarchical loss: l1, the paper's; psnr, minus the "
+        "windows' mean PSNR (a last fine-tune of a trained model)",
+        FINAL_TERMS,
+    )
+    seed: int = flag(0, "seed of the initial weights and of every batch")
+    data: list[str] = field(default_factory=list, metadata={"help": "", "choices": None})
+    """Folders of photographs and clips (:mod:`spk2img.sim.sources`; the ``--data`` flag, given
+    once per folder); none: procedural content only. The held-out sources of the natural and
+    the real-video validations are never trained on."""
+    data_mix: str = flag(
+        "photos=0.5,clips=0.3,procedural=0.2",
+        "shares of photo, clip and procedural samples (photos and clips need --data)",
+    )
+    sensor_preset: str = flag(
+        "",
+        "the real-like regime's sensor preset (JSON of spk2img fit-sensor); empty: the preset "
+        "fitted to a real PKU capture that ships with spk2img",
+    )
+    ideal_share: float = flag(
+        0.5,
+        "share of the samples filmed by the noise-free sensor, the others by the real-like one "
+        "(1: noise-free only, as simulated datasets such as spike-REDS are)",
+    )
+    workers: int = flag(1, "processes that make the batches ahead (0: the training process)")
+    device: str = flag("cpu", "where to train (cuda: bf16 autocast)", DEVICES)
+    val_every: int = flag(500, "steps between validations")
+    val_per_class: int = flag(
+        2, "procedural validation scenes per motion x brightness class (9 classes)"
+    )
+    checkpoint_every: int = flag(
+        100, "steps between checkpoints (last.pt); one is also written every 10 minutes"
+    )
+    threads: int = flag(1, "torch intra-op threads per process")
+    log_every: int = flag(10, "steps between metrics lines")
+    progress: bool = field(default=True, metadata={"help": "", "choices": None})
+    """Show a progress bar on stderr (the ``--no-progress`` flag)."""
+    init: str = flag(
+        "",
+        "a checkpoint of the same member whose weights start the run (fine-tuning); the "
+        "optimiser and schedule start afresh; not read when run-dir holds a last.pt to resume",
+    )
+
+    def __post_init__(self) -> None:
+        if self.member not in MEMBERS:
+            raise ValueError(f"unknown member {self.member!r}: choose one of {', '.join(MEMBERS)}")
+        if self.device not in DEVICES:
+            raise ValueError(f"--device {self.device}: choose one of {', '.join(DEVICES)}")
+        check_ideal_share(self.ideal_share)
+        check_final_term(self.loss)
