@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -11,13 +14,14 @@ from spk2img import api
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.errors import InputError
 from spk2img.io.frame_size import check_frame_size
+from spk2img.io.frame_store import FrameStore
 from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, DatStream
 from spk2img.runtime.adaptive import QUALITIES, BalancedStream
 from spk2img.runtime.binning import binning_for_rates, firing_rates
 from spk2img.runtime.block_stream import BlockReuseStream
 from spk2img.runtime.methods import DEFAULT_TFP_WINDOW, METHODS
 from spk2img.runtime.onnx_backend import DEVICES
-from spk2img.runtime.stream import NetStream, collect
+from spk2img.runtime.stream import NetStream
 from spk2img.runtime.windows import MAX_BINNING, check_binning
 
 
@@ -97,30 +101,57 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "once)",
     )
     p.add_argument("--url", help="send the work to a running service, e.g. http://127.0.0.1:8000")
-    p.add_argument("--png-dir", type=Path, help="also save each frame as a PNG (gamma 1/2.2)")
+    p.add_argument(
+        "--png-dir", type=Path, help="also save each frame as a PNG (gamma 1/2.2), as it is done"
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted run: the same command keeps the frames in "
+        "OUT.npz.partial/ and reconstructs only the others",
+    )
     add_progress_flags(p)
+
+
+EXIT_INTERRUPTED = 130
+"""Exit code of a run stopped by Ctrl-C (its finished frames are kept for --resume)."""
 
 
 def run(args: argparse.Namespace) -> int:
     """The flags are checked where the API checks its arguments (Reconstructor, the runtime's
-    ``method_window`` and ``load_network``), the output's suffix here."""
+    ``method_window`` and ``load_network``), the output's suffix here. Frames are kept as they
+    come (PNGs at once, the arrays in ``OUT.npz.partial/``, spk2img.io.frame_store), so an
+    interrupted run keeps every finished frame and ``--resume`` continues it."""
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
+    if args.resume and args.url:
+        raise InputError("--resume continues a local run: drop --url")
     spikes = api.read_spikes(args.input, args.height, args.width)
     if isinstance(spikes, DatStream) and not args.force_size:
         check_frame_size(args.input, args.height, args.width)
     if args.method == "net" and args.quality == "best":
         args.binning = _choose_binning(args, spikes)
-    how = ""
     if args.url:
-        args.no_progress = not show_progress(args)  # the client's bar follows the same rule
-        frames, centers = _reconstruct_remote(args, spikes, args.stride)
-    else:
-        frames, centers, how = _reconstruct_local(args, spikes, args.stride)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(args.out, frames=frames, centers=centers)
-    if args.png_dir:
-        save_pngs(args.png_dir, frames, centers)
+        args.no_progress = not show_progress(args)
+    sources = _remote_source(args, spikes) if args.url else _local_source(args, spikes)
+    with sources as source:
+        store = FrameStore(args.out, _run_record(args, spikes), args.resume)
+        owed = [int(k) for k in source.centers if int(k) not in store.done]
+        try:
+            _keep_frames(args, source, store, owed)
+        except KeyboardInterrupt:
+            store.flush()
+            say(
+                args,
+                f"interrupted: {store.kept} of {len(source.centers)} frames kept in "
+                f"{store.dir}; the same command with --resume continues the run",
+            )
+            return EXIT_INTERRUPTED
+        except BaseException:
+            store.flush()  # what is done stays done; --resume continues from it
+            raise
+        how = source.note()
+    frames, centers = store.finish(*spikes.shape[1:])
     say(
         args,
         f"wrote {len(centers)} frames of {frames.shape[1]}x{frames.shape[2]} to {args.out}{how}",
@@ -128,9 +159,35 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _reconstruct_local(args: argparse.Namespace, spikes: api.Spikes, stride: int | None):
-    """Through the public API (:class:`spk2img.Reconstructor`), with a bar over the stream's
-    frames that advances as each frame is read and each centre is done."""
+def _keep_frames(args: argparse.Namespace, source, store: FrameStore, owed: list[int]) -> None:
+    """Reconstruct the ``owed`` centres of ``source``, keeping each frame (and its PNG) as it
+    comes, with a bar over the run's outputs whose ETA follows the time per output."""
+    total = len(source.centers)
+    with progress_bar(args, total=total) as bar:
+        bar.set_description(source.label)
+        bar.update(total - len(owed))
+        if not owed:
+            return
+        resumed = len(owed) < total
+        for center, image in source.frames(owed if resumed else None):
+            if args.png_dir:  # first: every frame kept has its PNG
+                save_png(args.png_dir, center, image)
+            store.add(center, image)
+            bar.update(1)
+
+
+def _run_record(args: argparse.Namespace, spikes) -> dict:
+    """What decides a run's frames, for ``--resume`` to check it continues the same run."""
+    names = ("height", "width", "centers", "stride", "method", "window", "quality", "binning")
+    names += ("model", "backend", "checkpoint", "url")
+    record = {name: getattr(args, name) for name in names}
+    record = {k: str(v) if isinstance(v, Path) else v for k, v in record.items()}
+    return {"input": str(Path(args.input).resolve()), "frames": len(spikes), **record}
+
+
+@contextmanager
+def _local_source(args: argparse.Namespace, spikes: api.Spikes) -> Iterator[LocalFrames]:
+    """The public API (:class:`spk2img.Reconstructor`) on ``spikes``, with its centres."""
     recon = api.Reconstructor(
         args.method,
         quality=args.quality,
@@ -146,20 +203,44 @@ def _reconstruct_local(args: argparse.Namespace, spikes: api.Spikes, stride: int
     )
     if recon.device_note:
         say(args, recon.device_note)
-    n_out = len(recon.centers_for(len(spikes), args.centers, stride))
-    pairs = []
-    with progress_bar(args, total=len(spikes)) as bar:
-        bar.set_postfix_str(f"0/{n_out} out")
+    yield LocalFrames(args, spikes, recon)
 
-        def advance(read: int) -> None:
-            bar.update(read - bar.n)
 
-        for pair in recon.frames(spikes, centers=args.centers, stride=stride, progress=advance):
-            pairs.append(pair)
-            bar.set_postfix_str(f"{len(pairs)}/{n_out} out", refresh=False)
-    frames, centers = collect(pairs, *spikes.shape[1:])
-    where = device_note(recon.network.predict) if recon.network else ""
-    return frames, centers, compute_note(recon.last_stream) + where
+@dataclass
+class LocalFrames:
+    """The frames of a local run: its centres, and the reconstruction of all or some."""
+
+    args: argparse.Namespace
+    spikes: api.Spikes
+    recon: api.Reconstructor
+
+    @property
+    def centers(self) -> np.ndarray:
+        """``(N,) int64``: every centre the run's arguments ask for (checked)."""
+        return self.recon.centers_for(len(self.spikes), self.args.centers, self.args.stride)
+
+    @property
+    def label(self) -> str:
+        """What reconstructs, for the progress bar: the method, and the model and device."""
+        network = self.recon.network
+        if network is None:
+            return self.args.method
+        model = network.predict
+        name = getattr(model, "metadata", {}).get("name") or "torch checkpoint"
+        return f"{name} on {getattr(model, 'device', 'cpu')}"
+
+    def frames(self, centers: list[int] | None = None):
+        """The run's frames, or those of ``centers`` only (a resumed run), as they are done."""
+        if centers is None:
+            return self.recon.frames(
+                self.spikes, centers=self.args.centers, stride=self.args.stride
+            )
+        return self.recon.frames(self.spikes, centers=centers)
+
+    def note(self) -> str:
+        """What the work came to, for the closing message."""
+        where = device_note(self.recon.network.predict) if self.recon.network else ""
+        return compute_note(self.recon.last_stream) + where
 
 
 def parse_binning(text: str) -> int | str:
@@ -211,22 +292,22 @@ def compute_note(recon) -> str:
     return ""
 
 
-def _reconstruct_remote(args: argparse.Namespace, spikes: api.Spikes, stride: int | None):
+def _remote_source(args: argparse.Namespace, spikes: api.Spikes):
+    """The service at ``args.url`` (:func:`spk2img.clients.remote.remote_frames`)."""
     if args.model or args.checkpoint or args.backend != "onnx" or args.device:
         raise InputError(
             "--url runs the service's own model: drop --model/--checkpoint/--backend/--device"
         )
-    from spk2img.clients.remote import reconstruct_file_remote  # the client extra
+    from spk2img.clients.remote import remote_frames  # the client extra
 
-    return reconstruct_file_remote(args, spikes, stride)
+    return remote_frames(args, spikes, args.stride)
 
 
-def save_pngs(directory: Path, frames: np.ndarray, centers: np.ndarray) -> None:
-    """Write each frame as ``frame_{centre:06d}.png`` (display gamma 1/2.2)."""
+def save_png(directory: Path, center: int, image: np.ndarray) -> None:
+    """Write one frame as ``frame_{centre:06d}.png`` (display gamma 1/2.2)."""
     from PIL import Image
 
     from spk2img.io.light import to_display
 
     directory.mkdir(parents=True, exist_ok=True)
-    for k, image in zip(centers, to_display(frames), strict=True):
-        Image.fromarray(image).save(directory / f"frame_{int(k):06d}.png")
+    Image.fromarray(to_display(image)).save(directory / f"frame_{int(center):06d}.png")
