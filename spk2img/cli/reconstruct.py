@@ -203,7 +203,8 @@ def _local_source(args: argparse.Namespace, spikes: api.Spikes) -> Iterator[Loca
     )
     if recon.device_note:
         say(args, recon.device_note)
-    yield LocalFrames(args, spikes, recon)
+    centers = recon.centers_for(len(spikes), args.centers, args.stride)
+    yield LocalFrames(args, spikes, recon, centers)
 
 
 @dataclass
@@ -213,11 +214,8 @@ class LocalFrames:
     args: argparse.Namespace
     spikes: api.Spikes
     recon: api.Reconstructor
-
-    @property
-    def centers(self) -> np.ndarray:
-        """``(N,) int64``: every centre the run's arguments ask for (checked)."""
-        return self.recon.centers_for(len(self.spikes), self.args.centers, self.args.stride)
+    centers: np.ndarray
+    """``(N,) int64``: every centre the run's arguments ask for (checked)."""
 
     @property
     def label(self) -> str:
