@@ -235,3 +235,13 @@ def test_export_cli_rejects_bad_arguments(argv, tmp_path, monkeypatch, capsys):
     assert main(argv.split()) == 2
     assert "error" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
+
+
+def test_verify_stops_at_a_camera_frame_unless_asked_for_the_full_set(capsys):
+    from spk2img.export.hard_cases import DEFAULT_SIZES, FULL_SIZES, QUICK_SIZES
+
+    assert max(DEFAULT_SIZES) == (250, 400) and (1000, 1000) in FULL_SIZES
+    assert set(QUICK_SIZES) < set(DEFAULT_SIZES) < set(FULL_SIZES)
+    with pytest.raises(SystemExit):
+        main(["verify", "m.onnx", "--quick", "--full"])
+    assert "not allowed with argument" in capsys.readouterr().err

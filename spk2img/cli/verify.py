@@ -40,7 +40,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("model", type=Path, help="the exported .onnx")
     p.add_argument("--checkpoint", type=Path, help="the checkpoint it was exported from")
     p.add_argument("--json", type=Path, help="also write the results as JSON here")
-    p.add_argument("--quick", action="store_true", help="skip the 250x400 and 1000x1000 sizes")
+    scale = p.add_mutually_exclusive_group()
+    scale.add_argument(
+        "--quick", action="store_true", help="scenes up to 250x250 only, no 250x400 stream (CI)"
+    )
+    scale.add_argument(
+        "--full",
+        action="store_true",
+        help="also a 1000x1000 scene (about 12 GB of peak memory; the default stops at 250x400)",
+    )
     p.add_argument(
         "--sizes", help="comma-separated HxW scene sizes instead of the default list, e.g. 17x23"
     )
@@ -81,7 +89,10 @@ def run(args: argparse.Namespace) -> int:
         sizes = tuple(parse_size(s) for s in args.sizes.split(",") if s.strip())
         cases = hard_cases.scene_cases() + hard_cases.content_cases() + hard_cases.size_cases(sizes)
     else:
-        cases = hard_cases.standard_cases(quick=args.quick)
+        scene_sizes = hard_cases.DEFAULT_SIZES
+        if args.quick or args.full:
+            scene_sizes = hard_cases.QUICK_SIZES if args.quick else hard_cases.FULL_SIZES
+        cases = hard_cases.standard_cases(scene_sizes)
 
     def progress(result) -> None:
         print(

@@ -133,8 +133,13 @@ def stream_block_graphs(
 
 
 def whole_windows(model: Spk2ImgNet, spikes: np.ndarray, centers: np.ndarray) -> np.ndarray:
-    """``model`` in PyTorch on the whole window of each centre: ``(N, H, W)``."""
+    """``model`` in PyTorch on the whole window of each centre, one window at a time (a batch
+    of them at 250x400 would take gigabytes): ``(N, H, W)``."""
     frames = model.config.window_frames
-    windows = np.stack([net_input(spikes, k, frames) for k in centers]).astype(np.float32)
+    model.eval()
+    images = []
     with torch.no_grad():
-        return model.eval()(torch.from_numpy(windows))[0][:, 0].numpy()
+        for k in centers:
+            window = torch.from_numpy(net_input(spikes, k, frames)[None].astype(np.float32))
+            images.append(model(window)[0][0, 0].numpy())
+    return np.stack(images)

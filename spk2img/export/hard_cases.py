@@ -29,8 +29,12 @@ CASE_HEIGHT, CASE_WIDTH = 48, 64  # size of the content hard cases
 CASE_FRAMES = PUBLISHED_GEOMETRY.window_frames
 """Frames of every case's windows (41): a network with a shorter window reads their centred crop
 (:meth:`~spk2img.model.config.Geometry.crop`)."""
-FULL_SIZES = ((17, 23), (250, 250), (250, 400), (1000, 1000))
 QUICK_SIZES = ((17, 23), (250, 250))
+"""Scene sizes of ``spk2img verify --quick`` (CI's smoke run)."""
+DEFAULT_SIZES = (*QUICK_SIZES, (250, 400))
+"""Scene sizes of ``spk2img verify``: up to a spike camera's frame, within a laptop's memory."""
+FULL_SIZES = (*DEFAULT_SIZES, (1000, 1000))
+"""Scene sizes of ``spk2img verify --full``: 1000x1000 too (about 12 GB of peak memory)."""
 FAST_SPEED = 8.0  # px/frame, well beyond the 'fast' class (0.5-3 px/frame) the net trains on
 FAR_OFFSET = 1e5  # px added to every dy and subtracted from every dx in the far-offset variant
 FAR_GAIN = 1e3  # the far-offset variant's offset predictors are also scaled by this
@@ -130,10 +134,9 @@ def size_cases(sizes: tuple[tuple[int, int], ...], threads: tuple[int, ...] = (1
     return [Case(f"scene {h}x{w}", simulated_windows(rng, h, w), threads=threads) for h, w in sizes]
 
 
-def standard_cases(quick: bool = False) -> list[Case]:
-    """All cases: validation scenes, content hard cases, and the sizes (``quick``: without
-    250x400 and 1000x1000)."""
-    sizes = QUICK_SIZES if quick else FULL_SIZES
+def standard_cases(sizes: tuple[tuple[int, int], ...] = DEFAULT_SIZES) -> list[Case]:
+    """All cases: validation scenes, content hard cases, and a scene at each of ``sizes``
+    (:data:`QUICK_SIZES`, :data:`DEFAULT_SIZES` or :data:`FULL_SIZES`)."""
     return scene_cases() + content_cases() + size_cases(sizes)
 
 
