@@ -101,7 +101,13 @@ def size_scores(path: str | Path, height: int, width: int) -> list[SizeScore]:
     """:func:`coherence` of each of :func:`candidate_sizes` for the ``.dat`` at ``path``, best
     first (the given size among them, wherever it ranks)."""
     raw = np.memmap(path, dtype=np.uint8, mode="r")
-    scores = [coherence(raw, h, w) for h, w in candidate_sizes(raw.size, height, width)]
+    return _ranked(raw, coherence(raw, height, width))
+
+
+def _ranked(raw: np.ndarray, given: SizeScore) -> list[SizeScore]:
+    """``given`` and the :func:`coherence` of every other candidate size, best first."""
+    others = candidate_sizes(raw.size, given.height, given.width)[1:]  # the first is given's
+    scores = [given, *(coherence(raw, h, w) for h, w in others)]
     return sorted(scores, key=lambda s: -s.score)
 
 
@@ -115,7 +121,7 @@ def check_frame_size(path: str | Path, height: int, width: int) -> None:
     given = coherence(raw, height, width)
     if given.score >= CONFIDENT:
         return
-    scores = size_scores(path, height, width)
+    scores = _ranked(raw, given)  # the given size is not decoded twice
     best = scores[0]
     if best.score - given.score > MARGIN:
         likely = ", ".join(f"{s.height}x{s.width} ({s.score:.2f})" for s in scores[:3])
