@@ -21,13 +21,14 @@ from spk2img.sim.natural_scenes import (
 from spk2img.sim.scenes import PROCEDURAL_KINDS
 from spk2img.sim.simulator import GT_FRAMES, ground_truth
 from spk2img.sim.sources import (
+    LIGHT_CONVENTIONS,
     FrameFolder,
     SourceIndex,
     VideoFile,
     load_clip,
     load_photo,
     read_video,
-    to_linear,
+    to_light,
 )
 from spk2img.training.data import DataMix, SampleMaker
 
@@ -97,9 +98,15 @@ def test_the_index_finds_photos_frame_folders_and_videos_and_skips_bad_files(dat
     assert index.summary()["video_files"] == 1
 
 
-def test_frames_are_linear_luminance(data_dir):
-    assert to_linear(np.array([[0, 255]], np.uint8)).tolist() == [[0.0, 1.0]]
-    assert to_linear(np.array([[128]], np.uint8))[0, 0] == pytest.approx((128 / 255) ** 2.2)
+def test_frames_are_luminance_made_light_by_either_convention(data_dir):
+    """``linear`` undoes the display gamma, ``display`` takes value / 255 as the light; both
+    keep black and white; an unknown convention is refused."""
+    for convention in LIGHT_CONVENTIONS:
+        assert to_light(np.array([[0, 255]], np.uint8), convention).tolist() == [[0.0, 1.0]]
+    assert to_light(np.array([[128]], np.uint8))[0, 0] == pytest.approx((128 / 255) ** 2.2)
+    assert to_light(np.array([[128]], np.uint8), "display")[0, 0] == pytest.approx(128 / 255)
+    with pytest.raises(ValueError, match="light convention"):
+        to_light(np.array([[128]], np.uint8), "srgb")
     video = read_video(data_dir / "pan.mp4")
     assert len(video) == 6 and video[0].shape == (64, 80) and video[0].dtype == np.uint8
     expected = texture(64, 96, 11)[:, :80].astype(float)
@@ -108,7 +115,7 @@ def test_frames_are_linear_luminance(data_dir):
 
 
 def test_photo_scenes_move_and_their_layers_occlude():
-    photos = [to_linear(texture(120, 160, s)) for s in range(4)]
+    photos = [to_light(texture(120, 160, s)) for s in range(4)]
     still = photo_scene(np.random.default_rng(1), photos, 32, 40, "static", "normal")
     frames = still.intensities([0.5, 20.5, 40.5])
     assert np.array_equal(frames[0], frames[2])
@@ -136,11 +143,11 @@ def test_clip_interpolation_moves_content_along_the_flow():
     forward = np.stack([dis_flow(frames[0], frames[1])])
     backward = np.stack([dis_flow(frames[1], frames[0])])
     assert np.median(forward[..., 0]) == pytest.approx(3, abs=0.3)
-    linear = np.stack([to_linear(f) for f in frames])
+    linear = np.stack([to_light(f) for f in frames])
     scene = ClipScene(linear, forward, backward, frames_per_interval=10, start=0, meta={})
     halfway = scene.intensity(5.0)
     m = CLIP_MARGIN
-    shifted = Image.fromarray(to_linear(big)).transform(
+    shifted = Image.fromarray(to_light(big)).transform(
         big.shape[::-1], Image.Transform.AFFINE, (1, 0, 10.5, 0, 1, 0), Image.Resampling.BILINEAR
     )
     truth = np.asarray(shifted)[m:-m, m : m + 64]

@@ -6,11 +6,13 @@ import sys
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from spk2img.cli import main
 from spk2img.errors import InputError
 from spk2img.model.checkpoint import load_checkpoint, load_model, save_checkpoint
 from spk2img.sim.simulator import SensorConfig
+from spk2img.sim.sources import load_photo
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_loss
 from spk2img.training.train import TrainConfig, learning_rate, train
@@ -240,3 +242,21 @@ def test_train_help_gives_every_flag_its_default_and_a_run_ends_with_a_summary(t
     assert summary["best_psnr"] == summary["last_validation"]["psnr"]
     assert f"best checkpoint {run / 'best.pt'} (procedural validation, " in err
     assert f"{summary['best_psnr']:.2f} dB" in err
+
+
+def test_the_display_share_sets_how_many_natural_samples_take_the_value_as_the_light(tmp_path):
+    """``display_share`` 0: every photo or clip read linear; 1: every one display-referred;
+    0.5 about half (a share outside [0, 1] is refused). A display-referred photo is the linear
+    one with the gamma not undone."""
+    for share, expected in ((0.0, 0.0), (1.0, 1.0), (0.5, 0.5)):
+        maker = SampleMaker(16, seed=0, display_share=share)
+        rngs = (np.random.default_rng([5, k]) for k in range(400))
+        display = np.mean([maker.draw_light(rng) == "display" for rng in rngs])
+        assert display == pytest.approx(expected, abs=0.08)
+    with pytest.raises(ValueError, match="display-share"):
+        TrainConfig(display_share=2)
+    assert main(["train", "--display-share", "1.1", "--steps", "1"]) == 2
+    grey = (np.arange(48 * 64) % 256).astype(np.uint8).reshape(48, 64)
+    Image.fromarray(grey).save(tmp_path / "ramp.png")
+    display = load_photo(tmp_path / "ramp.png", "display")
+    assert np.allclose(display**2.2, load_photo(tmp_path / "ramp.png"), atol=1e-6)

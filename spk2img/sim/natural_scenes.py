@@ -20,9 +20,10 @@ so the mean flow over the window, divided by ``N``, falls in the motion class's 
 clip allows (a window spans at most :data:`MAX_INTERVALS` video intervals; slower clips give
 slower scenes). docs/training_data.md gives the px/frame distribution this yields.
 
-Intensities are linear (display gamma undone); each scene is exposed by a gain that brings its
-mean to the brightness class (dim 0.03-0.1, normal 0.15-0.5, bright 0.5-0.85), clipping what
-saturates.
+Intensities are light in [0, 1] by either convention of :mod:`spk2img.sim.sources` (photos
+come as light; a clip's frames are made light by the ``light`` argument); each scene is exposed
+by a gain that brings its mean to the brightness class (dim 0.03-0.1, normal 0.15-0.5, bright
+0.5-0.85), clipping what saturates.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from spk2img.sim.scenes import (
     sample_bilinear,
 )
 from spk2img.sim.simulator import FILM_FRAMES
-from spk2img.sim.sources import to_linear
+from spk2img.sim.sources import to_light
 
 MAX_LAYERS = 3
 LAYER_COUNT_WEIGHTS = (0.3, 0.3, 0.25, 0.15)  # P(0, 1, 2, 3 foreground layers)
@@ -213,8 +214,10 @@ def clip_scene(
     width: int,
     motion: str,
     brightness: str,
+    light: str = "linear",
 ) -> ClipScene:
-    """A scene from a clip's ``frames`` (``(H, W) uint8`` display grey each); module doc."""
+    """A scene from a clip's ``frames`` (``(H, W) uint8`` grey levels each), made light by the
+    ``light`` convention (:func:`~spk2img.sim.sources.to_light`); module doc."""
     m = CLIP_MARGIN
     fh, fw = frames[0].shape
     rh, rw = height + 2 * m, width + 2 * m
@@ -242,14 +245,14 @@ def clip_scene(
         crops.reverse()
     forward = np.stack([dis_flow(a, b) for a, b in zip(crops, crops[1:], strict=False)])
     backward = np.stack([dis_flow(b, a) for a, b in zip(crops, crops[1:], strict=False)])
-    linear = np.stack([to_linear(c) for c in crops])
+    linear = np.stack([to_light(c, light) for c in crops])
     gain = exposure_gain(linear[:, m:-m, m:-m], rng, brightness)
     linear = np.clip(linear * gain, 0, 1)
     span = intervals * per_interval - FILM_FRAMES
     start = float(rng.uniform(0, span)) if target > 0 else 0.0
     speed = _mean_motion(forward) / per_interval
     meta = {"kind": "clip", "motion": motion, "speed": speed, "brightness": brightness}
-    meta["frames_per_interval"] = per_interval
+    meta |= {"frames_per_interval": per_interval, "light": light}
     return ClipScene(linear, forward, backward, per_interval, start, meta)
 
 

@@ -10,8 +10,11 @@
 - clips as video files (``*.mp4``, ``*.avi``, ``*.mkv``, ``*.mov``, ``*.webm``), decoded with
   PyAV.
 
-Everything is read as linear intensity: colour to luminance (ITU-R BT.601 weights, as Pillow's
-``convert("L")``), then the display gamma undone, ``I = (v / 255) ** 2.2`` (docs/format.md).
+Colour becomes luminance (ITU-R BT.601 weights, as Pillow's ``convert("L")``), and its 8-bit
+values become light by one of two conventions (:data:`LIGHT_CONVENTIONS`): ``linear`` undoes the
+display gamma, ``I = (v / 255) ** 2.2`` (docs/format.md); ``display`` takes the value itself as
+the light, ``I = v / 255``, as the field's simulated datasets (spike-REDS) and its real-video
+benchmark do.
 A file that cannot be read, or is smaller than the training patch, is skipped and counted
 (:attr:`SourceIndex.skipped`); it never stops a run.
 """
@@ -29,18 +32,25 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from spk2img.io.light import DISPLAY_GAMMA
+
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff"}
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mkv", ".mov", ".webm"}
 MIN_CLIP_FRAMES = 3
 """A folder of at least this many consecutively numbered images is a clip."""
 MAX_VIDEO_FRAMES = 250
 """Frames read from the start of a video file (a clip's motion needs only a few)."""
-DISPLAY_GAMMA = 2.2
+LIGHT_CONVENTIONS = ("linear", "display")
+"""How 8-bit grey levels become light (module doc)."""
 
 
-def to_linear(grey: np.ndarray) -> np.ndarray:
-    """``(H, W) uint8`` display grey levels -> ``(H, W) float32`` linear intensity in [0, 1]."""
-    return (np.asarray(grey, np.float32) / 255) ** DISPLAY_GAMMA
+def to_light(grey: np.ndarray, convention: str = "linear") -> np.ndarray:
+    """``(H, W) uint8`` grey levels -> ``(H, W) float32`` light in [0, 1]: ``(v / 255) ** 2.2``
+    for the ``linear`` convention, ``v / 255`` for ``display`` (module doc)."""
+    if convention not in LIGHT_CONVENTIONS:
+        raise ValueError(f"light convention {convention!r}: use one of {LIGHT_CONVENTIONS}")
+    light = np.asarray(grey, np.float32) / 255
+    return light**DISPLAY_GAMMA if convention == "linear" else light
 
 
 def read_grey(path: str | Path) -> np.ndarray:
@@ -204,15 +214,16 @@ def _size(source: Photo | Clip) -> tuple[int, int]:
 
 
 @functools.lru_cache(maxsize=1024)
-def load_photo(path: Path) -> np.ndarray:
-    """A photo as ``(H, W) float32`` linear intensity (cached per process)."""
-    return to_linear(read_grey(path))
+def load_photo(path: Path, light: str = "linear") -> np.ndarray:
+    """A photo as ``(H, W) float32`` light in [0, 1] by the ``light`` convention (cached per
+    process and convention)."""
+    return to_light(read_grey(path), light)
 
 
 @functools.lru_cache(maxsize=64)
 def load_clip(clip: Clip) -> tuple[np.ndarray, ...]:
-    """A clip's frames as ``(H, W) uint8`` display grey levels (cached per process; linearise
-    with :func:`to_linear` after cropping)."""
+    """A clip's frames as ``(H, W) uint8`` grey levels (cached per process; made light with
+    :func:`to_light` after cropping)."""
     if isinstance(clip, VideoFile):
         frames = read_video(clip.path)
     else:

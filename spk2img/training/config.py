@@ -20,10 +20,10 @@ def check_final_term(final: str) -> None:
         raise ValueError(f"--loss {final}: use one of {', '.join(FINAL_TERMS)}")
 
 
-def check_ideal_share(share: float) -> None:
-    """``ValueError`` unless ``share`` (of the samples the ideal sensor films) is in [0, 1]."""
+def check_share(flag_name: str, share: float) -> None:
+    """``ValueError`` naming ``--flag-name`` unless ``share`` (of the samples) is in [0, 1]."""
     if not 0 <= share <= 1:
-        raise ValueError(f"--ideal-share {share}: the ideal sensor's share must be in [0, 1]")
+        raise ValueError(f"--{flag_name.replace('_', '-')} {share}: a share must be in [0, 1]")
 
 
 def flag(default: Any, help: str, choices: tuple[str, ...] | None = None) -> Any:
@@ -73,6 +73,12 @@ class TrainConfig:
         "share of the samples filmed by the noise-free sensor, the others by the real-like one "
         "(1: noise-free only, as simulated datasets such as spike-REDS are)",
     )
+    display_share: float = flag(
+        0.5,
+        "share of the photo and clip samples whose 8-bit values are the light (v/255, the "
+        "field's convention: spike-REDS, the real-video benchmark); the others undo the display "
+        "gamma ((v/255)^2.2)",
+    )
     workers: int = flag(1, "processes that make the batches ahead (0: the training process)")
     device: str = flag("cpu", "where to train (cuda: bf16 autocast)", DEVICES)
     val_every: int = flag(500, "steps between validations")
@@ -97,5 +103,6 @@ class TrainConfig:
             raise ValueError(f"unknown member {self.member!r}: choose one of {', '.join(MEMBERS)}")
         if self.device not in DEVICES:
             raise ValueError(f"--device {self.device}: choose one of {', '.join(DEVICES)}")
-        check_ideal_share(self.ideal_share)
+        check_share("ideal_share", self.ideal_share)
+        check_share("display_share", self.display_share)
         check_final_term(self.loss)

@@ -1,6 +1,7 @@
 """Training batches: 41-frame windows and ground truth at the five block centres, from
-procedural scenes, natural photographs and real clips mixed at set weights, filmed by an ideal
-or a real-like sensor, with random 90° rotations and flips.
+procedural scenes, natural photographs and real clips mixed at set weights (photos and clips
+made light by either convention of :mod:`spk2img.sim.sources`), filmed by an ideal or a
+real-like sensor, with random 90° rotations and flips.
 
 Every sample is a pure function of ``(seed, rank, step, index in batch)``, so a resumed run sees
 exactly the batches it would have seen, each data-parallel rank sees different ones, and worker
@@ -23,7 +24,7 @@ from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, random_s
 from spk2img.sim.simulator import SensorConfig, ground_truth, simulate
 from spk2img.sim.sources import SourceIndex, load_clip, load_photo
 
-from .config import check_ideal_share
+from .config import check_share
 
 KINDS = ("procedural", "photos", "clips")
 
@@ -79,6 +80,8 @@ class SampleMaker:
             given (0.5: half and half; 1: noise-free data only, like simulated datasets).
         geometry: the trained network's window and blocks (the frames filmed, and the block
             centres the ground truth is taken at).
+        display_share: share of the photo and clip samples read by the ``display`` light
+            convention (value / 255 is the light), the others by ``linear``.
     """
 
     def __init__(
@@ -91,8 +94,11 @@ class SampleMaker:
         real_sensor: SensorConfig | None = None,
         ideal_share: float = 0.5,
         geometry: Geometry = PUBLISHED_GEOMETRY,
+        display_share: float = 0.0,
     ):
-        check_ideal_share(ideal_share)
+        check_share("ideal_share", ideal_share)
+        check_share("display_share", display_share)
+        self.display_share = display_share
         self.geometry = geometry
         self.patch, self.seed, self.rank = patch, seed, rank
         self.index, self.real_sensor, self.ideal_share = index, real_sensor, ideal_share
@@ -110,13 +116,16 @@ class SampleMaker:
         motion, brightness = str(rng.choice(MOTIONS)), str(rng.choice(BRIGHTNESSES))
         p = self.patch
         try:
+            if kind != "procedural":
+                light = self.draw_light(rng)
             if kind == "photos":
                 picks = rng.integers(len(self.index.photos), size=1 + MAX_LAYERS)
-                photos = [load_photo(self.index.photos[k].path) for k in picks]
+                photos = [load_photo(self.index.photos[k].path, light) for k in picks]
                 scene = photo_scene(rng, photos, p, p, motion, brightness)
+                scene.meta["light"] = light
             elif kind == "clips":
                 clip = self.index.clips[int(rng.integers(len(self.index.clips)))]
-                scene = clip_scene(rng, load_clip(clip), p, p, motion, brightness)
+                scene = clip_scene(rng, load_clip(clip), p, p, motion, brightness, light)
         except (OSError, ValueError) as exc:  # a file that broke after the index was built
             warnings.warn(f"training data: {exc}; a procedural sample instead", stacklevel=2)
             kind = "procedural"
@@ -125,6 +134,14 @@ class SampleMaker:
         sensor = self.draw_sensor(rng)
         spikes = simulate(scene, self.geometry.window_frames, sensor, rng)
         return augment(spikes, ground_truth(scene, self.geometry.block_centres), rng)
+
+    def draw_light(self, rng: np.random.Generator) -> str:
+        """``display`` with probability ``display_share``, else ``linear`` (drawn from ``rng``
+        only for a share strictly between 0 and 1, so single-convention runs keep their
+        batches)."""
+        if 0 < self.display_share < 1:
+            return "display" if rng.uniform() < self.display_share else "linear"
+        return "display" if self.display_share == 1 else "linear"
 
     def draw_sensor(self, rng: np.random.Generator) -> SensorConfig:
         """Ideal with probability ``ideal_share``, else the real-like regime (module doc)."""

@@ -175,6 +175,7 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     member = state["member"]
     history_line = f"- history: {history}\n" if history else ""
     ideal_share = tc.get("ideal_share", 0.5)
+    display_share = tc.get("display_share", 0.0)  # runs from before --display-share: linear
     init = state.get("init_from")
     init_line = (
         f"- started from `{Path(init['path']).name}` ({init['member']}, step {init['step']}, "
@@ -275,14 +276,17 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
   mirrored at random. Photos under camera motion with moving foreground layers, clips with
   their real motion interpolated along their optical flow; {ideal_share:.0%} of the samples
   filmed by the ideal integrate-and-fire sensor, the others by the sensor fitted to a real PKU
-  capture with jittered strengths. Sources and licences of every photo and clip:
-  docs/training_data.md.
+  capture with jittered strengths; {display_share:.0%} of the photo and clip samples read
+  display-referred (the 8-bit value / 255 is the light, the field's convention), the others
+  linear (the display gamma undone, (value / 255)^2.2). Sources and licences of every photo
+  and clip: docs/training_data.md.
 - loss: hierarchical L1 (λ = 0.02){LOSS_NOTES[loss]}; Adam, peak lr {tc["lr"]}, warm-up
   {tc["warmup_steps"]} steps, cosine decay; batch {tc["batch_size"]}; seed {tc["seed"]}.
 - steps: **{state["step"]}** of {tc["steps"]} planned; **{state["wall_s"] / 3600:.2f} h** of
   optimiser steps on {state.get("hardware", f"{tc['threads']} CPU threads")}.
 - command: `spk2img train --member {member} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]} {data_flags}
+  --ideal-share {ideal_share} --display-share {display_share}
   --threads {tc["threads"]}{init_flag}{loss_flag}`
 {init_line}{history_line}{resume}
 {body}

@@ -155,6 +155,7 @@ def train(cfg: TrainConfig) -> dict:
         real_sensor,
         cfg.ideal_share,
         model.config.geometry,
+        cfg.display_share,
     )
     log = _Log(run_dir / "metrics.jsonl") if run.main else None
     val_sets = {}
@@ -169,6 +170,8 @@ def train(cfg: TrainConfig) -> dict:
             sources=index.summary() if index else None,
             mix=dict(zip(("procedural", "photos", "clips"), maker.weights.tolist(), strict=True)),
             real_sensor=dataclasses.asdict(real_sensor),
+            ideal_share=cfg.ideal_share,
+            display_share=cfg.display_share if index else None,
             natural_validation_scenes=len(val_sets["natural"]),
             real_video_windows=len(val_sets["real_video"]),
         )
