@@ -11,10 +11,12 @@ from PIL import Image
 from spk2img.cli import main
 from spk2img.errors import InputError
 from spk2img.model.checkpoint import load_checkpoint, load_model, save_checkpoint
+from spk2img.model.config import PUBLISHED_GEOMETRY
 from spk2img.sim.simulator import SensorConfig
 from spk2img.sim.sources import load_photo
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_loss
+from spk2img.training.synthesis import batch_generator, film_plans
 from spk2img.training.train import TrainConfig, learning_rate, train
 
 TINY_RUN = dict(
@@ -110,13 +112,33 @@ def test_worker_processes_make_the_same_batches_in_order():
         assert np.array_equal(spikes, expected[0]) and np.array_equal(truth, expected[1])
 
 
-def test_resume_continues_the_same_loss_curve(tmp_path):
+def test_worker_processes_draw_the_same_scene_plans_in_order():
+    """Plans made in a worker process and sent back film to the same batches as plans made
+    here (torch synthesis)."""
+    maker = SampleMaker(16, seed=4)
+    batches = Batches(maker, 2, start=7, workers=1, make="plans")
+    try:
+        made = [batches.next() for _ in range(2)]
+    finally:
+        batches.close()
+    for step, plans in enumerate(made, start=7):
+        generator = batch_generator(4, 0, step, torch.device("cpu"))
+        spikes, truth = film_plans(plans, PUBLISHED_GEOMETRY, generator)
+        generator = batch_generator(4, 0, step, torch.device("cpu"))
+        expected = film_plans(maker.plans(step, 2), PUBLISHED_GEOMETRY, generator)
+        assert torch.equal(spikes, expected[0]) and torch.equal(truth, expected[1])
+
+
+@pytest.mark.parametrize("synthesis", ["numpy", "torch"])
+def test_resume_continues_the_same_loss_curve(tmp_path, synthesis):
+    """Either simulator: a run stopped at step 3 and resumed ends where a straight one does."""
+    run = TINY_RUN | {"synthesis": synthesis}
     straight = tmp_path / "straight"
-    train(TrainConfig(run_dir=str(straight), steps=6, **TINY_RUN))
+    train(TrainConfig(run_dir=str(straight), steps=6, **run))
     resumed = tmp_path / "resumed"
-    train(TrainConfig(run_dir=str(resumed), steps=3, **TINY_RUN))
+    train(TrainConfig(run_dir=str(resumed), steps=3, **run))
     assert load_checkpoint(resumed / "last.pt")["step"] == 3
-    train(TrainConfig(run_dir=str(resumed), steps=6, **TINY_RUN))
+    train(TrainConfig(run_dir=str(resumed), steps=6, **run))
     a = [r["loss"] for r in _records(straight, "train")]
     b = [r["loss"] for r in _records(resumed, "train")]
     assert len(a) == len(b) == 6

@@ -189,14 +189,19 @@ class ClipScene(Scene):
         y, x = np.mgrid[m : m + self.height, m : m + self.width].astype(np.float32)
         self._y, self._x = y, x
 
-    def intensities(self, times: ArrayLike) -> np.ndarray:
+    def phases(self, times: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """For each of ``times`` (N,): the video interval ``j`` (``(N,) int``, from frame ``j``
+        to ``j + 1``) and the phase ``a`` in it (``(N,) float32`` in [0, 1])."""
         position = (np.ravel(np.asarray(times, np.float64)) + self.start) / self.frames_per_interval
-        last = len(self.frames) - 1
-        out = np.empty((len(position), self.height, self.width), np.float32)
+        position = np.clip(position, 0, len(self.frames) - 1)
+        interval = np.minimum(position.astype(int), len(self.frames) - 2)
+        return interval, (position - interval).astype(np.float32)
+
+    def intensities(self, times: ArrayLike) -> np.ndarray:
+        intervals, phases = self.phases(times)
+        out = np.empty((len(intervals), self.height, self.width), np.float32)
         m, h, w = CLIP_MARGIN, self.height, self.width
-        for i, p in enumerate(np.clip(position, 0, last)):
-            j = min(int(p), last - 1)
-            a = np.float32(p - j)
+        for i, (j, a) in enumerate(zip(intervals, phases, strict=True)):
             fwd = a * self.forward[j][m : m + h, m : m + w]
             bwd = (1 - a) * self.backward[j][m : m + h, m : m + w]
             before = sample_bilinear(self.frames[j], self._y - fwd[..., 1], self._x - fwd[..., 0])

@@ -209,7 +209,8 @@ class MovingImage(Scene):
             raise ValueError(f"a source must be 2-D, 2x2 to 16M pixels, got {self.source.shape}")
         self.height, self.width, self.motion, self.meta = height, width, motion, meta
         y, x = np.mgrid[0:height, 0:width].astype(np.float32)
-        self._basis = motion.basis(y, x)  # (9, H*W) float32
+        self.basis = motion.basis(y, x)
+        """(9, H * W) float32: the motion's spatial basis at every output pixel."""
         self._still = self._render(np.zeros(1))[0] if motion.clock == 0 else None
 
     def intensities(self, times: ArrayLike) -> np.ndarray:
@@ -217,21 +218,27 @@ class MovingImage(Scene):
             return np.broadcast_to(self._still, (np.size(times), self.height, self.width))
         return self._render(np.asarray(times, np.float64).ravel())
 
-    def _render(self, times: np.ndarray) -> np.ndarray:
+    def sampling_rows(self, times: np.ndarray) -> np.ndarray:
+        """``(2N, 9) float32`` rows whose products with :attr:`basis` are the source ``y`` (the
+        first N rows) and ``x`` (the last N) of every output pixel at ``times`` (N,), counted
+        from the source's corner."""
         hs, ws = self.source.shape
         coefficients = self.motion.coefficients(times)
         offset = coefficients[:, :, 2] + [(hs - 1) / 2, (ws - 1) / 2]  # from the source corner
         # mirroring repeats every 2 (n - 1) px: fold the offset so float32 keeps its precision
         coefficients[:, :, 2] = np.mod(offset, [2 * (hs - 1), 2 * (ws - 1)])
         rows = coefficients.transpose(1, 0, 2).reshape(-1, coefficients.shape[-1])  # (2N, 9)
-        rows = rows.astype(np.float32)
+        return rows.astype(np.float32)
+
+    def _render(self, times: np.ndarray) -> np.ndarray:
+        rows = self.sampling_rows(times)
         n, pixels = len(times), self.height * self.width
         image = np.empty((n, pixels), np.float32)
         step = max(1, SAMPLE_BLOCK // n)  # pixels a block: its temporaries stay in cache
         for start in range(0, pixels, step):
             block = slice(start, start + step)
             # einsum, not BLAS: OpenBLAS threads cost more than they save on blocks this small
-            coords = np.einsum("ik,kp->ip", rows, self._basis[:, block])
+            coords = np.einsum("ik,kp->ip", rows, self.basis[:, block])
             py, px = coords.reshape(2, n, -1)  # (N, step) each
             image[:, block] = sample_bilinear(self.source, py, px)
         image = image.reshape(n, self.height, self.width)

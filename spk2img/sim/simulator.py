@@ -115,6 +115,12 @@ class SensorConfig:
         )
 
 
+def substep_times(t0: float, n_frames: int, substeps: int) -> np.ndarray:
+    """``(n_frames * substeps,) float64``: the midpoints of the ``substeps`` equal parts of
+    each frame interval from ``t0`` on, frame by frame (where the simulator samples light)."""
+    return (t0 + np.arange(n_frames)[:, None] + (np.arange(substeps) + 0.5) / substeps).ravel()
+
+
 class SpikeSimulator:
     """A sensor filming ``scene`` from time ``t0``; :meth:`run` continues where it stopped.
 
@@ -164,8 +170,8 @@ class SpikeSimulator:
     def _charge_in(self, t: float, n: int) -> np.ndarray:
         """Charge ``(n, H, W) float32`` collected in frames starting at ``t, t+1, ...``."""
         s, h, w = self.substeps, self.scene.height, self.scene.width
-        times = t + np.arange(n)[:, None] + (np.arange(s) + 0.5) / s  # (n, s) midpoints
-        light = self.scene.intensities(times.ravel()).reshape(n, s, h, w).mean(1)
+        times = substep_times(t, n, s)
+        light = self.scene.intensities(times).reshape(n, s, h, w).mean(1)
         charge = np.float32(SPIKE_RATE) * light + self.dark
         if self.sensor.shot_noise:
             quantum = self.sensor.threshold / self.sensor.photons_per_threshold  # charge/photon

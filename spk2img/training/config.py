@@ -12,6 +12,8 @@ FINAL_TERMS = ("l1", "psnr")
 """The final image's term of the hierarchical loss (``--loss``)."""
 DEVICES = ("cpu", "cuda")
 """Where a run trains (``--device``)."""
+SYNTHESES = ("auto", "numpy", "torch")
+"""Who films the training windows (``--synthesis``)."""
 
 
 def check_final_term(final: str) -> None:
@@ -81,6 +83,13 @@ class TrainConfig:
     )
     workers: int = flag(1, "processes that make the batches ahead (0: the training process)")
     device: str = flag("cpu", "where to train (cuda: bf16 autocast)", DEVICES)
+    synthesis: str = flag(
+        "auto",
+        "who films the training windows: numpy, the reference simulator in the worker "
+        "processes; torch, the same simulator batched on the training device (the workers only "
+        "draw the scenes); auto: torch on cuda, numpy on cpu",
+        SYNTHESES,
+    )
     val_every: int = flag(500, "steps between validations")
     val_per_class: int = flag(
         2, "procedural validation scenes per motion x brightness class (9 classes)"
@@ -98,11 +107,17 @@ class TrainConfig:
         "optimiser and schedule start afresh; not read when run-dir holds a last.pt to resume",
     )
 
+    def films_on_device(self) -> bool:
+        """Whether torch synthesis films the windows (``--synthesis``; auto: on cuda)."""
+        return self.synthesis == "torch" or (self.synthesis == "auto" and self.device == "cuda")
+
     def __post_init__(self) -> None:
         if self.member not in MEMBERS:
             raise ValueError(f"unknown member {self.member!r}: choose one of {', '.join(MEMBERS)}")
         if self.device not in DEVICES:
             raise ValueError(f"--device {self.device}: choose one of {', '.join(DEVICES)}")
+        if self.synthesis not in SYNTHESES:
+            raise ValueError(f"--synthesis {self.synthesis}: choose one of {', '.join(SYNTHESES)}")
         check_share("ideal_share", self.ideal_share)
         check_share("display_share", self.display_share)
         check_final_term(self.loss)

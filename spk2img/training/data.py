@@ -20,7 +20,7 @@ import numpy as np
 
 from spk2img.model.config import PUBLISHED_GEOMETRY, Geometry
 from spk2img.sim.natural_scenes import MAX_LAYERS, clip_scene, photo_scene
-from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, random_scene
+from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, Scene, random_scene
 from spk2img.sim.simulator import SensorConfig, ground_truth, simulate
 from spk2img.sim.sources import SourceIndex, load_clip, load_photo
 
@@ -57,13 +57,26 @@ class DataMix:
         return w / w.sum()
 
 
-def augment(spikes: np.ndarray, truth: np.ndarray, rng: np.random.Generator):
-    """The same random rotation by k·90° and optional flip on both ``(c, h, w)`` arrays."""
-    k = int(rng.integers(4))
-    spikes, truth = np.rot90(spikes, k, axes=(1, 2)), np.rot90(truth, k, axes=(1, 2))
-    if rng.integers(2):
-        spikes, truth = spikes[:, :, ::-1], truth[:, :, ::-1]
-    return spikes, truth
+def draw_augmentation(rng: np.random.Generator) -> tuple[int, bool]:
+    """A random rotation by ``k`` quarter turns (0-3) and whether to mirror after it."""
+    return int(rng.integers(4)), bool(rng.integers(2))
+
+
+def augment(array: np.ndarray, quarter_turns: int, mirror: bool) -> np.ndarray:
+    """``(c, h, w)`` ``array`` rotated by ``quarter_turns`` · 90° (from ``h`` towards ``w``),
+    then mirrored left-right if ``mirror``."""
+    array = np.rot90(array, quarter_turns, axes=(1, 2))
+    return array[:, :, ::-1] if mirror else array
+
+
+@dataclass(frozen=True)
+class ScenePlan:
+    """A training sample before filming (torch synthesis films it on the training device)."""
+
+    scene: Scene
+    sensor: SensorConfig
+    quarter_turns: int
+    mirror: bool
 
 
 class SampleMaker:
@@ -110,7 +123,23 @@ class SampleMaker:
     def sample(self, step: int, item: int) -> tuple[np.ndarray, np.ndarray]:
         """Item ``item`` of the batch of ``step``: ``(F, P, P) uint8`` spikes (the geometry's
         window, 41 as published) and ``(blocks, P, P) float32`` ground truth at the block
-        centres, augmented."""
+        centres, augmented; filmed by the numpy simulator."""
+        rng, scene, sensor = self.draw(step, item)
+        spikes = simulate(scene, self.geometry.window_frames, sensor, rng)
+        truth = ground_truth(scene, self.geometry.block_centres)
+        quarter_turns, mirror = draw_augmentation(rng)
+        return augment(spikes, quarter_turns, mirror), augment(truth, quarter_turns, mirror)
+
+    def plan(self, step: int, item: int) -> ScenePlan:
+        """Item ``item`` of the batch of ``step`` before filming: its scene, sensor and
+        augmentation (the same scene and sensor as :meth:`sample`'s)."""
+        _, scene, sensor = self.draw(step, item)
+        rng = np.random.default_rng([self.seed, self.rank, step, item, 1])
+        return ScenePlan(scene, sensor, *draw_augmentation(rng))
+
+    def draw(self, step: int, item: int) -> tuple[np.random.Generator, Scene, SensorConfig]:
+        """The scene and sensor of item ``item`` of the batch of ``step``, and the generator
+        they were drawn from (the numpy simulator goes on drawing from it)."""
         rng = np.random.default_rng([self.seed, self.rank, step, item])
         kind = KINDS[int(rng.choice(len(KINDS), p=self.weights))]
         motion, brightness = str(rng.choice(MOTIONS)), str(rng.choice(BRIGHTNESSES))
@@ -131,9 +160,7 @@ class SampleMaker:
             kind = "procedural"
         if kind == "procedural":
             scene = random_scene(rng, p, p, motion, brightness, PROCEDURAL_KINDS)
-        sensor = self.draw_sensor(rng)
-        spikes = simulate(scene, self.geometry.window_frames, sensor, rng)
-        return augment(spikes, ground_truth(scene, self.geometry.block_centres), rng)
+        return rng, scene, self.draw_sensor(rng)
 
     def draw_light(self, rng: np.random.Generator) -> str:
         """``display`` with probability ``display_share``, else ``linear`` (drawn from ``rng``
@@ -158,6 +185,10 @@ class SampleMaker:
         truth = np.stack([np.ascontiguousarray(t, np.float32) for _, t in pairs])
         return spikes, truth
 
+    def plans(self, step: int, size: int) -> list[ScenePlan]:
+        """The :meth:`plan` of every item of the batch of ``step``."""
+        return [self.plan(step, item) for item in range(size)]
+
 
 _WORKER_MAKER: SampleMaker | None = None
 
@@ -167,8 +198,8 @@ def _init_worker(maker: SampleMaker) -> None:
     _WORKER_MAKER = maker
 
 
-def _worker_batch(step: int, size: int) -> tuple[np.ndarray, np.ndarray]:
-    return _WORKER_MAKER.batch(step, size)
+def _worker_batch(make: str, step: int, size: int):
+    return getattr(_WORKER_MAKER, make)(step, size)
 
 
 CLOSE_WAIT_S = 30.0
@@ -177,10 +208,20 @@ CLOSE_WAIT_S = 30.0
 
 class Batches:
     """``next()`` -> the batches of ``start``, ``start + 1``, ... in order, made ahead by
-    ``workers`` processes (0: in this process), at most ``2 * workers`` batches ahead."""
+    ``workers`` processes (0: in this process), at most ``2 * workers`` batches ahead: the
+    maker's filmed arrays (``make="batch"``) or its scene plans (``make="plans"``)."""
 
-    def __init__(self, maker: SampleMaker, batch_size: int, start: int, workers: int = 0):
-        self.maker, self.batch_size, self.step = maker, batch_size, start
+    def __init__(
+        self,
+        maker: SampleMaker,
+        batch_size: int,
+        start: int,
+        workers: int = 0,
+        make: str = "batch",
+    ):
+        if make not in ("batch", "plans"):
+            raise ValueError(f"make={make!r}: batch or plans")
+        self.maker, self.batch_size, self.step, self.make = maker, batch_size, start, make
         self.pool = None
         self.pending: deque = deque()
         if workers > 0:
@@ -192,11 +233,12 @@ class Batches:
 
     def _submit(self) -> None:
         step = self.step + len(self.pending)  # pending holds the batches of self.step on
-        self.pending.append(self.pool.apply_async(_worker_batch, (step, self.batch_size)))
+        args = (self.make, step, self.batch_size)
+        self.pending.append(self.pool.apply_async(_worker_batch, args))
 
     def next(self) -> tuple[np.ndarray, np.ndarray]:
         if self.pool is None:
-            out = self.maker.batch(self.step, self.batch_size)
+            out = getattr(self.maker, self.make)(self.step, self.batch_size)
             self.step += 1
             return out
         out = self.pending.popleft().get()

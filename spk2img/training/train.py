@@ -40,6 +40,7 @@ from spk2img.sim.sources import SourceIndex
 from .config import TrainConfig
 from .data import Batches, DataMix, SampleMaker
 from .loss import hierarchical_loss
+from .synthesis import batch_generator, film_plans
 
 CHECKPOINT_SECONDS = 600.0
 
@@ -157,6 +158,8 @@ def train(cfg: TrainConfig) -> dict:
         model.config.geometry,
         cfg.display_share,
     )
+    films_on_device = cfg.films_on_device()
+    make = "plans" if films_on_device else "batch"
     log = _Log(run_dir / "metrics.jsonl") if run.main else None
     val_sets = {}
     if run.main:
@@ -172,6 +175,7 @@ def train(cfg: TrainConfig) -> dict:
             real_sensor=dataclasses.asdict(real_sensor),
             ideal_share=cfg.ideal_share,
             display_share=cfg.display_share if index else None,
+            synthesis="torch" if films_on_device else "numpy",
             natural_validation_scenes=len(val_sets["natural"]),
             real_video_windows=len(val_sets["real_video"]),
         )
@@ -215,16 +219,18 @@ def train(cfg: TrainConfig) -> dict:
     val: dict = {}
     tick, tick_step = time.perf_counter(), start
     saved_at = time.monotonic()
-    batches = Batches(maker, cfg.batch_size, start, cfg.workers)
+    batches = Batches(maker, cfg.batch_size, start, cfg.workers, make)
     try:
         for step in range(start, cfg.steps):
             t0 = time.perf_counter()
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate(cfg, step)
-            spikes, truth = (
-                torch.from_numpy(a).to(device).contiguous(memory_format=torch.channels_last)
-                for a in batches.next()
-            )
+            if films_on_device:
+                generator = batch_generator(cfg.seed, run.rank, step, device)
+                batch = film_plans(batches.next(), model.config.geometry, generator)
+            else:
+                batch = (torch.from_numpy(a).to(device) for a in batches.next())
+            spikes, truth = (a.contiguous(memory_format=torch.channels_last) for a in batch)
             with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
                 image, estimates = net(spikes)
                 loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
