@@ -48,6 +48,7 @@ COMMANDS = {  # argv -> the extra it needs (None: the base install runs it)
     "fit-sensor IN": None,
     "models": "train",
     "train --steps 1": "train",
+    "pack-data --data . --out o.pack": None,
     "export --random-weights --member tiny --out m.onnx": "export",
     "verify m.onnx": "export",
     "serve --port 8123": "serve",

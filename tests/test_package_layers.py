@@ -13,7 +13,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "spk2img"
 
 LAYERS: list[set[str]] = [
-    {"errors", "provenance", "io", "protocol"},  # the spike format, the wire format
+    {"errors", "provenance", "parts", "io", "protocol"},  # spike and wire formats, transfer
     {"model"},  # the network and its geometry
     {"sim"},  # what a spike camera films
     {"runtime"},  # spikes -> windows -> network -> frames

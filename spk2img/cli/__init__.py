@@ -25,6 +25,7 @@ SUBCOMMANDS = [
     "fit-sensor",
     "models",
     "train",
+    "pack-data",
     "export",
     "verify",
     "serve",
