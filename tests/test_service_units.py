@@ -156,17 +156,41 @@ def _job(method: str, **query) -> StreamJob:
 )
 def test_the_job_gives_the_same_records_for_any_split(method, cuts):
     whole = _job(method, stride=3, window=5)
-    expected = whole.feed(BODY) + whole.finish()
+    expected = _advance_all(whole, BODY) + whole.finish()
     job = _job(method, stride=3, window=5)
     bounds = [0, *sorted(cuts), len(BODY)]
     records = []
     for a, b in zip(bounds, bounds[1:], strict=False):
-        records += job.feed(BODY[a:b])
+        records += _advance_all(job, BODY[a:b])
     assert records + job.finish() == expected
+
+
+def _advance_all(job: StreamJob, chunk: bytes) -> list[bytes]:
+    """Feed ``chunk`` and advance until nothing is pending (as the response does)."""
+    job.feed(chunk)
+    records = []
+    while job.pending:
+        step = job.advance()
+        assert step or not job.pending  # a call returns records, or has used every frame
+        records += step
+    return records
+
+
+def test_each_advance_returns_the_records_of_one_step_as_soon_as_their_window_is_in():
+    """A whole body taken at once comes back a step at a time: every call to advance returns
+    the frames of one model call (batch 1: one centre), not the body's all at the end."""
+    job = _job("net", stride=3)
+    job.feed(BODY)
+    sizes = []
+    while job.pending:
+        sizes.append(len(job.advance()))
+    centres = len(range(20, 60 - 20, 3))
+    assert sum(sizes) == centres and set(sizes) <= {0, 1} and sizes.count(1) == centres
 
 
 def test_a_cancelled_job_stops():
     job = _job("tfp", stride=1, window=3)
+    job.feed(BODY)
     job.cancel()
     with pytest.raises(Cancelled):
-        job.feed(BODY)
+        job.advance()

@@ -46,9 +46,32 @@ def browser():
         browser.close()
 
 
+def test_the_pages_run_under_their_content_security_policy(browser, service):
+    """The viewer and the API page with the service's policy enforced: the viewer reaches the
+    service (ready), the API page renders every path, and the browser reports no violation."""
+    context = browser.new_context()
+    page = context.new_page()
+    problems: list[str] = []
+    page.on("pageerror", lambda error: problems.append(str(error)))
+    page.on("console", lambda message: problems.append(message.text))
+    try:
+        page.goto(service.url + "/")
+        page.wait_for_selector("#service-status:has-text('ready')", timeout=WAIT_MS)
+        page.goto(service.url + "/docs")
+        page.wait_for_selector("section h2:has-text('/v1/reconstruct')", timeout=WAIT_MS)
+        assert page.locator("section").count() >= 5
+    finally:
+        context.close()
+    assert not [p for p in problems if "Content Security Policy" in p or "Refused" in p], problems
+
+
 @pytest.fixture
 def page(browser, service):
-    context = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+    # the tests' own polling (wait_for_function) evaluates strings, which the page's policy
+    # forbids; the test above runs the pages with the policy enforced
+    context = browser.new_context(
+        viewport={"width": 1280, "height": 900}, accept_downloads=True, bypass_csp=True
+    )
     page = context.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
@@ -191,7 +214,7 @@ def test_a_long_plan_is_split_into_requests(browser, service, tmp_path):
     shows the same frames as one request to the API."""
     path = tmp_path / "rec.dat"
     path.write_bytes(BODY)
-    context = browser.new_context()
+    context = browser.new_context(bypass_csp=True)  # wait_for_function evaluates strings
     page = context.new_page()
     page.goto(f"{service.url}/?budget={12 * (28 + H * W)}")
     requests = reconstruct_requests(page)

@@ -56,7 +56,8 @@ def test_nothing_is_fetched_from_elsewhere():
 def test_the_files_ship_in_the_package():
     config = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert "service/static/*" in config["tool"]["setuptools"]["package-data"]["spk2img"]
-    assert {p.name for p in STATIC_DIR.iterdir()} == {"index.html", "viewer.js", "viewer.css"}
+    names = {p.name for p in STATIC_DIR.iterdir()}
+    assert names == {"index.html", "viewer.js", "viewer.css", "api.html", "api.js", "api.css"}
 
 
 def test_the_binning_field_takes_what_the_api_takes():

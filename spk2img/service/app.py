@@ -10,7 +10,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from functools import partial
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 
 from spk2img import __version__
 from spk2img.runtime.loader import load_network
@@ -18,7 +18,9 @@ from spk2img.runtime.loader import load_network
 from .errors import install_error_handlers
 from .inference import InferencePool
 from .metrics import MetricsMiddleware
+from .query import single_valued_query
 from .routers import health, models, reconstruct, viewer
+from .security import SecurityHeadersMiddleware
 from .settings import ServiceSettings
 from .state import ServiceState
 
@@ -33,10 +35,15 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         version=__version__,
         summary="Spike-camera streams to images, streamed frame by frame (see docs/service.md).",
         lifespan=_lifespan,
+        docs_url=None,  # Swagger UI and ReDoc load from a CDN: /docs is the viewer's API page
+        redoc_url=None,
+        redirect_slashes=False,  # a redirect would build its Location from the Host header
+        dependencies=[Depends(single_valued_query)],
     )
     app.state.service = state
     install_error_handlers(app)
     app.add_middleware(MetricsMiddleware, metrics=state.metrics)
+    app.add_middleware(SecurityHeadersMiddleware)
     for router in (reconstruct.router, models.router, health.router, viewer.router):
         app.include_router(router)
     state.metrics.set_paths(tuple(getattr(route, "path", "") for route in app.routes))

@@ -3,11 +3,15 @@ itself, so frames go out while the body is still coming in (docs/http.md).
 
 Three parts run at once:
 
-* the **upload** (:class:`_Upload`): a task that reads the body one piece ahead and watches for
-  the client leaving. A piece that does not come within ``upload_read_timeout_seconds``, or an
-  upload slower on average than ``min_upload_bytes_per_second``, ends the request with 408. A
-  disconnect cancels the running job at once (it stops at its next step: one model call).
-* the **job**: decode and reconstruct each piece in the pool, one piece at a time.
+* the **upload** (:class:`_Upload`): a task that reads the body up to ``read_ahead_bytes`` ahead
+  and watches for the client leaving (the server says so only to a reader, so a body sent
+  whole before the client reads is read ahead whole when it fits). A piece that does not come
+  within ``upload_read_timeout_seconds``, or an upload slower on average than
+  ``min_upload_bytes_per_second``, ends the request with 408. A disconnect cancels the running
+  job at once (it stops at its next step: one model call) and frees its place.
+* the **job**: decode each piece, then reconstruct it step by step in the pool, one call at a
+  time; the records of each step are queued as soon as it ends, so a frame goes out when its
+  window is in.
 * the **outbox** (:class:`_Outbox`): a task that sends the records. Up to
   ``response_buffer_bytes`` of records wait for a client that is not reading yet (a client that
   sends its whole body before reading), so the upload goes on; past that the job waits for the
@@ -78,6 +82,7 @@ class FramesResponse(Response):
             settings.upload_read_timeout_seconds,
             settings.min_upload_bytes_per_second,
             self.job.cancel,
+            settings.read_ahead_bytes,
         )
         outbox = _Outbox(send, settings.response_buffer_bytes, settings.upload_read_timeout_seconds)
         try:
@@ -85,7 +90,9 @@ class FramesResponse(Response):
                 run = self.admission.run
                 try:
                     while (chunk := await upload.next()) is not None:
-                        await outbox.put(await upload.unless_gone(run(self.job.feed, chunk)))
+                        await upload.unless_gone(run(self.job.feed, chunk))
+                        while self.job.pending:
+                            await outbox.put(await upload.unless_gone(run(self.job.advance)))
                     await outbox.put(await upload.unless_gone(run(self.job.finish)))
                     await outbox.put([encode_done(outbox.frames)], frames=False)
                 except (ClientGone, Unread):
@@ -139,15 +146,23 @@ class FramesResponse(Response):
 
 
 class _Upload:
-    """Reads the request body one piece ahead of the job, in a task, and notices a disconnect
-    at once (then calls ``on_gone``: the job stops at its next step)."""
+    """Reads the request body up to ``read_ahead`` bytes ahead of the job, in a task, and
+    notices a disconnect at once while it reads (then calls ``on_gone``: the job stops at its
+    next step)."""
 
     def __init__(
-        self, receive: Receive, read_timeout: float, min_rate: int, on_gone: Callable[[], None]
+        self,
+        receive: Receive,
+        read_timeout: float,
+        min_rate: int,
+        on_gone: Callable[[], None],
+        read_ahead: int,
     ):
         self._receive, self._on_gone = receive, on_gone
-        self.read_timeout, self.min_rate = read_timeout, min_rate
-        self._pieces: asyncio.Queue[bytes | None] = asyncio.Queue(1)
+        self.read_timeout, self.min_rate, self.read_ahead = read_timeout, min_rate, read_ahead
+        self._pieces: asyncio.Queue[bytes | None] = asyncio.Queue()
+        self._ahead = 0  # bytes in _pieces
+        self._room = asyncio.Event()
         self._gone = asyncio.Event()
         self._task = asyncio.ensure_future(self._read())
         self.bytes = 0
@@ -164,9 +179,14 @@ class _Upload:
                 return
             if more:  # after the body, receive() only ever says the client left
                 more = message.get("more_body", False)
-                await self._pieces.put(message.get("body", b""))
+                piece = message.get("body", b"")
+                self._ahead += len(piece)
+                self._pieces.put_nowait(piece)
                 if not more:
-                    await self._pieces.put(None)
+                    self._pieces.put_nowait(None)
+                while self._ahead >= self.read_ahead:
+                    self._room.clear()
+                    await self._room.wait()
 
     async def next(self) -> bytes | None:
         """The next piece of the body, ``None`` at its end. Raises :class:`ClientGone` or
@@ -176,7 +196,7 @@ class _Upload:
             wait = min(wait, self.read_timeout + self.bytes / self.min_rate - self.waited)
         start = time.monotonic()
         try:
-            piece = await self.unless_gone(asyncio.wait_for(self._pieces.get(), max(wait, 0)))
+            piece = await self.unless_gone(self._get(max(wait, 0)))
         except TimeoutError:
             if wait < self.read_timeout:
                 detail = (
@@ -192,7 +212,14 @@ class _Upload:
             self.complete = True
         else:
             self.bytes += len(piece)
+            self._ahead -= len(piece)
+            self._room.set()
         return piece
+
+    async def _get(self, wait: float) -> bytes | None:
+        # Queue.get() is made here, not by the caller: a coroutine made and then dropped when
+        # the client has left would warn "never awaited"
+        return await asyncio.wait_for(self._pieces.get(), wait)
 
     async def unless_gone(self, work: Awaitable[T]) -> T:
         """Await ``work`` unless the client disconnects first (then raise :class:`ClientGone`)."""

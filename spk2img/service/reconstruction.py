@@ -2,14 +2,17 @@
 
 :class:`StreamJob` wraps the core pieces — :class:`~spk2img.io.spikes.SpikeDecoder`, a
 :class:`~spk2img.runtime.stream.StreamingReconstructor` and the framing — and enforces the
-per-request limits. Its :meth:`~StreamJob.feed` and :meth:`~StreamJob.finish` run in the
-inference pool, one call at a time; :meth:`~StreamJob.cancel` may be called from any thread.
+per-request limits. Its :meth:`~StreamJob.feed` (decode a piece of the upload),
+:meth:`~StreamJob.advance` (reconstruct until the next records are done: at most one model call
+or classical step past them) and :meth:`~StreamJob.finish` run in the inference pool, one call
+at a time; :meth:`~StreamJob.cancel` may be called from any thread.
 """
 
 from __future__ import annotations
 
 import io
 import threading
+from collections import deque
 
 import numpy as np
 from PIL import Image
@@ -31,9 +34,12 @@ STEP_PIXELS = 2**22
 """Classical methods push about this many spike pixels between checks for cancellation."""
 
 NET_BYTES_PER_PIXEL = 14 * 2**10
-"""Peak memory of one model call per window pixel: measured with the shipped model and
+"""Peak memory of one model call per window pixel of the frame as the network pads it (both
+sides up to a multiple of its ``size_multiple``): measured with the shipped model and
 onnxruntime 1.32 (CPU, no arena) at 11.4 KiB (250x400), 12.7 KiB (125x200) and 13.2 KiB (64x64)
-per pixel, whole graph or block encoder and head; rounded up."""
+per pixel, whole graph or block encoder and head; rounded up. Thin frames pay for their padding:
+one row of 20,000 pixels peaked at 44.6 KiB a pixel (3.2x; padded to 4 rows: 11.2 KiB a padded
+pixel), two rows at 26 KiB (tests/test_service_memory.py measures thin, square and wide)."""
 WINDOW_BYTES_PER_PIXEL = 16
 """Per pixel and frame of the window: the spikes (uint8) and their float32 copy, with slack."""
 JOB_BYTES = 16 * 2**20
@@ -58,16 +64,24 @@ def job_memory(
     query: ReconstructQuery, settings: ServiceSettings, response_bytes: int, geometry: Geometry
 ) -> int:
     """An upper estimate of the memory one request may use: the model's activations (``net``:
-    :data:`NET_BYTES_PER_PIXEL` per pixel and window of a call), the window (``net``: the
-    served network's ``geometry``), and the records waiting for the client (``response_bytes``,
-    at most ``response_buffer_bytes``)."""
+    :data:`NET_BYTES_PER_PIXEL` per padded pixel and window of a call), the window (``net``: the
+    served network's ``geometry``), the upload read ahead (``read_ahead_bytes``), and the
+    records waiting for the client (``response_bytes``, at most ``response_buffer_bytes``)."""
     pixels = query.height * query.width
     model = query.method == "net" and query.quality != "fast"
     window = method_window(query.method, query.window, query.binning, geometry=geometry)
-    memory = JOB_BYTES + pixels * window * WINDOW_BYTES_PER_PIXEL
+    memory = JOB_BYTES + settings.read_ahead_bytes + pixels * window * WINDOW_BYTES_PER_PIXEL
     if model:
-        memory += pixels * NET_BYTES_PER_PIXEL * settings.batch
+        net_pixels = padded_pixels(query.height, query.width, geometry)
+        memory += net_pixels * NET_BYTES_PER_PIXEL * settings.batch
     return memory + min(response_bytes, settings.response_buffer_bytes)
+
+
+def padded_pixels(height: int, width: int, geometry: Geometry) -> int:
+    """Pixels of a ``height x width`` frame as the network computes it: both sides padded up to
+    a multiple of ``geometry.size_multiple``."""
+    m = geometry.size_multiple
+    return -(-height // m) * m * (-(-width // m) * m)
 
 
 def frame_record_bytes(query: ReconstructQuery) -> int:
@@ -110,20 +124,39 @@ class StreamJob:
         pixels = query.height * query.width
         self.step = settings.batch if query.method == "net" else max(1, STEP_PIXELS // pixels)
         self.bytes_received = 0
+        self._frames: deque[np.ndarray] = deque()  # decoded, not yet reconstructed
         self._cancelled = threading.Event()
 
-    def feed(self, chunk: bytes) -> list[bytes]:
-        """Take the next bytes of the upload; return the ``FRAM`` records they completed."""
+    @property
+    def pending(self) -> bool:
+        """Whether decoded frames wait for :meth:`advance`."""
+        return bool(self._frames)
+
+    def feed(self, chunk: bytes) -> None:
+        """Take (decode) the next bytes of the upload; :meth:`advance` reconstructs them."""
         self.bytes_received += len(chunk)
         frames = self.decoder.feed(chunk)
         check_upload_size(self.settings, self.bytes_received, self.decoder.frames_decoded)
-        records = []
-        for start in range(0, len(frames), self.step):
+        if len(frames):
+            self._frames.append(frames)
+
+    def advance(self) -> list[bytes]:
+        """Reconstruct the frames taken, step by step, until a step completes ``FRAM`` records
+        (return them) or none are left (return ``[]``): so each frame goes out as soon as its
+        window is in, and a cancelled job stops within one step."""
+        while self._frames:
             if self._cancelled.is_set():
                 raise Cancelled
-            records += self._encode(self.recon.push(frames[start : start + self.step]))
+            frames = self._frames[0]
+            if len(frames) > self.step:
+                self._frames[0] = frames[self.step :]
+            else:
+                self._frames.popleft()
+            records = self._encode(self.recon.push(frames[: self.step]))
             self._check_pending()
-        return records
+            if records:
+                return records
+        return []
 
     def finish(self) -> list[bytes]:
         """The upload ended: check it and return the records still owed.

@@ -58,6 +58,13 @@ class ServiceSettings(BaseSettings):
     )
     max_body_bytes: int = Field(256 * 2**20, ge=1, description="upload size limit in bytes")
     max_frames: int = Field(20_000, ge=1, description="spike frames per request")
+    read_ahead_bytes: int = Field(
+        4 * 2**20,
+        ge=1,
+        description="upload bytes read ahead of the reconstruction (reserved per request): a "
+        "client that sends its body before reading and then leaves is noticed at once when "
+        "the rest of its body fits here",
+    )
     max_pixels: int = Field(512 * 512, ge=1, description="height*width limit in pixels")
     max_window: int = Field(
         401, ge=1, description="largest window in frames (TFP/TFI's, or the network's 41 x binning)"
