@@ -229,6 +229,7 @@ class AppServer:
     url: str
     port: int
     app: object
+    listeners: object
 
     def get(self, path: str) -> httpx.Response:
         return httpx.get(self.url + path, timeout=10)
@@ -242,17 +243,14 @@ class AppServer:
 def run_app_server(model: Path, **settings) -> Iterator[AppServer]:
     """Serve ``model`` with ``ServiceSettings(**settings)`` from a thread of this process;
     wait until ``/readyz`` is 200."""
-    import uvicorn
-
-    from spk2img.service.server import server_config
+    from spk2img.service.server import Listeners
     from spk2img.service.settings import ServiceSettings
 
     port = free_port()
-    config = server_config(ServiceSettings(model=model, port=port, log_level="warning", **settings))
-    server = uvicorn.Server(config)
-    thread = threading.Thread(target=server.run, daemon=True)
+    listeners = Listeners(ServiceSettings(model=model, port=port, log_level="warning", **settings))
+    thread = threading.Thread(target=listeners.run, daemon=True)
     thread.start()
-    running = AppServer(f"http://127.0.0.1:{port}", port, config.app)
+    running = AppServer(f"http://127.0.0.1:{port}", port, listeners.app, listeners)
     try:
         deadline = time.monotonic() + START_SECONDS
         while True:
@@ -266,7 +264,7 @@ def run_app_server(model: Path, **settings) -> Iterator[AppServer]:
             time.sleep(0.05)
         yield running
     finally:
-        server.should_exit = server.force_exit = True  # no grace for the tests' leftovers
+        listeners.stop()  # no grace for the tests' leftovers
         thread.join(15)
 
 

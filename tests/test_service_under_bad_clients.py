@@ -57,6 +57,7 @@ def guarded(standin_model):
         header_timeout_seconds=1.0,
         keep_alive_seconds=1,
         max_connections=24,
+        health_port=0,
         response_buffer_bytes=200_000,
         memory_budget_bytes=64 * 2**20,
         read_ahead_bytes=256 * 2**10,
@@ -378,6 +379,54 @@ def test_memory_budget_refuses_with_503_and_too_large_frames_with_422(guarded):
     )
     assert huge.status_code == 422 and "memory budget" in huge.json()["detail"]
     _wait_for(lambda: _idle(guarded), 2)
+
+
+def test_liveness_and_readiness_get_through_a_flood_of_held_connections(guarded):
+    """300 connections holding half-sent heads on the main port (24 let in, the rest refused
+    there): the probes' port still answers /healthz and /readyz, and nothing else."""
+    _wait_for(lambda: _idle(guarded))
+    probes = f"http://127.0.0.1:{guarded.listeners.health_port}"
+    flood = []
+    try:
+        for _ in range(300):
+            sock = socket.create_connection(("127.0.0.1", guarded.port), timeout=5)
+            sock.sendall(b"GET /v1/mod")
+            flood.append(sock)
+        main = httpx.get(guarded.url + "/healthz", timeout=5)
+        live = httpx.get(probes + "/healthz", timeout=5)
+        ready = httpx.get(probes + "/readyz", timeout=5)
+        other = httpx.get(probes + "/v1/models", timeout=5)
+    finally:
+        for sock in flood:
+            sock.close()
+    assert main.status_code == 503  # the main port's cap, as before
+    assert live.status_code == 200 and live.json() == {"status": "ok"}
+    assert ready.status_code == 200 and ready.json()["status"] == "ready"
+    assert other.status_code == 404 and "only" in other.json()["detail"]
+
+
+def test_readyz_is_503_while_a_typical_request_would_not_be_admitted(guarded):
+    """Two places; the budget of 64 MiB is under a 250x400 frame's cost, so one request that
+    reserves most of it leaves the service busy for a typical request though a small one would
+    still get in."""
+    _wait_for(lambda: _idle(guarded))
+    pool = guarded.state.pool
+    capacity, pool.capacity = pool.capacity, 2
+    admission = pool.admit(40 * 2**20)
+    try:
+        busy = guarded.get("/readyz")
+        small = httpx.post(
+            guarded.url + f"/v1/reconstruct?height={H}&width={W}&centers=20&method=tfp",
+            content=stream_bytes(45, H, W, seed=3)[1],
+            headers=OCTET,
+        )
+    finally:
+        admission.close()
+        pool.capacity = capacity
+    assert busy.status_code == 503 and "busy" in busy.json()["detail"]
+    assert small.status_code == 200
+    assert guarded.state.typical_request_bytes == 64 * 2**20  # the whole budget at most
+    assert guarded.get("/readyz").status_code == 200
 
 
 def test_readyz_is_503_while_no_job_could_be_admitted(guarded):

@@ -17,8 +17,15 @@ from spk2img.runtime.loader import load_network
 
 from .errors import install_error_handlers
 from .inference import InferencePool
+from .memory import (
+    budget_problem,
+    container_limit_bytes,
+    map_large_allocations_apart,
+    resident_bytes,
+)
 from .metrics import MetricsMiddleware
 from .query import single_valued_query
+from .reconstruction import typical_request_bytes
 from .routers import health, models, reconstruct, viewer
 from .security import SecurityHeadersMiddleware
 from .settings import ServiceSettings
@@ -63,6 +70,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         batch=settings.batch,
         warm_up=False,  # in the pool, after start-up: /readyz says when it is done
     )
+    map_large_allocations_apart()  # freed buffers go back to the system (service.memory)
     state.network = await asyncio.to_thread(load)  # a GPU that cannot run here: no start
     model = state.network.predict
     if model.device_note:
@@ -70,12 +78,22 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     logger.info("model runs on %s (%s)", model.device, model.provider)
     pool = InferencePool(settings.job_workers, settings.max_queue, settings.memory_budget_bytes)
     state.pool = pool
+    state.typical_request_bytes = typical_request_bytes(settings, state.network.geometry)
     state.metrics.watch_pool(lambda: pool.jobs, lambda: pool.admitted, lambda: pool.reserved)
-    warm_up = asyncio.create_task(_warm_up(state))
+    problem = budget_problem(
+        settings.memory_budget_bytes, resident_bytes(), container_limit_bytes()
+    )
+    warm_up = None
+    if problem:  # never ready: /readyz and the log say why
+        logger.error("%s", problem)
+        state.waiting_for = f"a memory budget that fits ({problem})"
+    else:
+        warm_up = asyncio.create_task(_warm_up(state))
     try:
         yield
     finally:
-        warm_up.cancel()
+        if warm_up is not None:
+            warm_up.cancel()
         state.ready = False
         state.pool.shutdown()
 

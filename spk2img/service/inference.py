@@ -8,18 +8,25 @@ so at most ``workers`` jobs run and at most ``max_queue`` wait: a request that f
 Each admission also reserves an estimate of the memory its request may use (see
 :func:`spk2img.service.reconstruction.job_memory`); a request whose estimate does not fit in
 what is left of ``budget`` bytes is turned away too. The reservation is given back with the
-place, once the request's last job has finished.
+place, once the request's last job has finished. Soon after the last admission is given back
+the pool returns the memory its requests freed to the system (:mod:`spk2img.service.memory`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import gc
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
+from .memory import release_free_memory
+
 T = TypeVar("T")
+IDLE_TRIM_SECONDS = 0.5
+"""How long after the last admission is given back the pool returns freed memory (the
+request's response and buffers are dropped by then)."""
 
 
 class InferencePool:
@@ -96,6 +103,16 @@ class InferencePool:
         with self._lock:
             self._admitted -= 1
             self._reserved -= cost
+            idle = self._admitted == 0
+        if idle:  # once the request's objects are gone too, give their memory back
+            timer = threading.Timer(IDLE_TRIM_SECONDS, self._release_memory_if_idle)
+            timer.daemon = True
+            timer.start()
+
+    def _release_memory_if_idle(self) -> None:
+        if self._admitted == 0:
+            gc.collect()  # cycles (exceptions' tracebacks hold frames and their arrays)
+            release_free_memory()
 
 
 class Admission:

@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from spk2img.io.light import to_display
-from spk2img.io.spikes import SpikeDecoder
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, SpikeDecoder
 from spk2img.model.config import Geometry
 from spk2img.protocol.framing import encode_frame
 from spk2img.runtime.loader import LoadedNetwork
@@ -75,6 +75,14 @@ def job_memory(
         net_pixels = padded_pixels(query.height, query.width, geometry)
         memory += net_pixels * NET_BYTES_PER_PIXEL * settings.batch
     return memory + min(response_bytes, settings.response_buffer_bytes)
+
+
+def typical_request_bytes(settings: ServiceSettings, geometry: Geometry) -> int:
+    """What a typical request reserves: one ``net`` frame of the camera's 250x400 as float32,
+    at most the whole budget (so an idle service is ready even with a smaller budget)."""
+    query = ReconstructQuery(height=DEFAULT_HEIGHT, width=DEFAULT_WIDTH, centers=str(geometry.half))
+    cost = job_memory(query, settings, frame_record_bytes(query), geometry)
+    return min(cost, settings.memory_budget_bytes) if settings.memory_budget_bytes else cost
 
 
 def padded_pixels(height: int, width: int, geometry: Geometry) -> int:

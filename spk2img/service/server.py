@@ -12,15 +12,22 @@ uvicorn's h11 protocol, with what it lacks (:func:`protocol_class`):
 
 and uvicorn's own settings: ``timeout_keep_alive`` (``keep_alive_seconds``) and
 ``h11_max_incomplete_event_size`` (``max_head_bytes``).
+
+With ``health_port``, :class:`Listeners` runs a second, plain listener in the same event loop
+that answers only ``/healthz`` and ``/readyz`` from the same app (:class:`HealthOnly`), so an
+orchestrator's probes are never refused for connections held on the main port.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+from collections.abc import Iterator
 
 import uvicorn
 from fastapi import FastAPI
+from starlette.types import ASGIApp, Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from .app import create_app
@@ -28,6 +35,23 @@ from .metrics import ServiceMetrics
 from .settings import ServiceSettings
 
 GRACEFUL_SHUTDOWN_SECONDS = 5
+HEALTH_PATHS = frozenset({"/healthz", "/readyz"})
+_NOT_A_PROBE = json.dumps({"detail": "this port answers /healthz and /readyz only"}).encode()
+
+
+class HealthOnly:
+    """``app`` for the health paths only; anything else is a JSON 404."""
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"] in HEALTH_PATHS:
+            await self.app(scope, receive, send)
+            return
+        headers = [(b"content-type", b"application/json")]
+        await send({"type": "http.response.start", "status": 404, "headers": headers})
+        await send({"type": "http.response.body", "body": _NOT_A_PROBE})
 
 
 def protocol_class(settings: ServiceSettings, metrics: ServiceMetrics) -> type[H11Protocol]:
@@ -110,6 +134,57 @@ def server_config(settings: ServiceSettings, app: FastAPI | None = None) -> uvic
     )
 
 
+class _ProbeServer(uvicorn.Server):
+    """A uvicorn server that leaves the signals to the main one (which stops it)."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        yield
+
+
+class Listeners:
+    """The main listener and, with ``settings.health_port``, the probes' listener serving the
+    same app in one event loop; the probes' one stops when the main one does."""
+
+    def __init__(self, settings: ServiceSettings, app: FastAPI | None = None):
+        self.app = app if app is not None else create_app(settings)
+        self.main = uvicorn.Server(server_config(settings, self.app))
+        self.probes = None
+        if settings.health_port is not None:
+            probes = uvicorn.Config(
+                HealthOnly(self.app),
+                host=settings.host,
+                port=settings.health_port,
+                lifespan="off",  # the main listener runs the app's lifespan
+                log_level=settings.log_level,
+                access_log=False,
+            )
+            self.probes = _ProbeServer(probes)
+
+    @property
+    def health_port(self) -> int | None:
+        """The probes' port once listening (``health_port`` 0 picks a free one)."""
+        if self.probes is None or not self.probes.started:
+            return None
+        return self.probes.servers[0].sockets[0].getsockname()[1]
+
+    async def serve(self) -> None:
+        probes = asyncio.ensure_future(self.probes.serve()) if self.probes else None
+        try:
+            await self.main.serve()
+        finally:
+            if probes is not None:
+                self.probes.should_exit = True
+                await probes
+
+    def stop(self) -> None:
+        """Stop both at once (no grace)."""
+        self.main.should_exit = self.main.force_exit = True
+
+    def run(self) -> None:
+        asyncio.run(self.serve())
+
+
 def run(settings: ServiceSettings) -> None:
     """Serve until stopped (SIGINT/SIGTERM)."""
-    uvicorn.Server(server_config(settings)).run()
+    Listeners(settings).run()

@@ -105,6 +105,14 @@ class ServiceSettings(BaseSettings):
     max_connections: int = Field(
         256, ge=1, description="open connections; more are answered 503 and closed at once"
     )
+    health_port: int | None = Field(
+        None,
+        ge=0,
+        le=65535,
+        description="a second listener on the same host answering only /healthz and /readyz "
+        "(0: any free port), for an orchestrator's probes: connections held on the main port "
+        "never fail them; none by default",
+    )
     max_head_bytes: int = Field(
         16384, ge=1024, description="request line and headers in bytes (h11); more is 400"
     )

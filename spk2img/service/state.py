@@ -29,6 +29,9 @@ class ServiceState:
     """The served network (onnxruntime), with its block encoder and head when they are beside
     it and ``block_reuse`` is on."""
     pool: InferencePool | None = None
+    typical_request_bytes: int = 0
+    """What a typical request reserves (:func:`~spk2img.service.reconstruction.typical_request_
+    bytes`): ``/readyz`` is 200 only while one would be admitted."""
     ready: bool = False
     waiting_for: str = "the model to load"
 

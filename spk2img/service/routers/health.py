@@ -5,7 +5,6 @@ from __future__ import annotations
 from fastapi import APIRouter, Response
 from prometheus_client import CONTENT_TYPE_LATEST
 
-from ..reconstruction import JOB_BYTES
 from ..schemas import ErrorDetail, Ready, Status
 from ..state import Service
 
@@ -29,12 +28,13 @@ def healthz() -> Status:
     },
 )
 def readyz(service: Service) -> Ready:
-    """200 once the model is loaded and warmed while a request could be admitted, with the
-    device and onnxruntime provider it runs on; 503 (with ``Retry-After``) before, and while
-    every place or the memory budget is taken."""
+    """200 once the model is loaded and warmed while a typical request (one 250x400 frame of
+    the network) would be admitted, with the device and onnxruntime provider it runs on; 503
+    (with ``Retry-After``) before, and while every place, or too much of the memory budget for
+    such a request, is taken."""
     if not service.ready:
         raise service.unavailable()
-    if service.pool.full(JOB_BYTES):
+    if service.pool.full(service.typical_request_bytes):
         raise service.busy()
     model = service.network.predict
     return Ready(status="ready", device=model.device, provider=model.provider)
