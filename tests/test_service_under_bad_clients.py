@@ -80,6 +80,16 @@ def _idle(server) -> bool:
     return server.state.pool.admitted == 0
 
 
+def _reset(client: DuplexClient, server, slow: SlowModel, within: float) -> tuple[float, int]:
+    """Reset ``client``'s connection (RST): the seconds until the server's places are all free
+    again (at most ``within``) and the model calls that ran after the reset."""
+    client.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\0\0\0\0\0\0\0")
+    calls_at_reset = slow.calls
+    client.close()
+    freed = _wait_for(lambda: _idle(server), within)
+    return freed, slow.calls - calls_at_reset
+
+
 def test_a_trickling_upload_gets_408_within_the_timeout_and_frees_its_slot(guarded):
     """One byte every 0.2 s (5 B/s, under the 1000 B/s minimum): 408 JSON after about the read
     timeout; meanwhile /readyz says 503 (the one slot is taken); after it the slot is free."""
@@ -230,11 +240,7 @@ def test_a_disconnect_cancels_the_job_within_one_model_call(guarded):
         client.start(target, {**OCTET, "x-spk2img-duplex": "1"}, length=len(body))
         client.send(body)
         _wait_for(lambda: slow.calls >= 5)
-        client.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\0\0\0\0\0\0\0")
-        calls_at_reset = slow.calls
-        client.close()  # RST
-        freed = _wait_for(lambda: _idle(guarded), 2)
-        after = slow.calls - calls_at_reset
+        freed, after = _reset(client, guarded, slow, 2)
     finally:
         network.predict = model
     text = guarded.get("/metrics").text
@@ -267,11 +273,7 @@ def test_a_send_then_read_client_gets_its_first_frame_at_once_and_its_reset_free
         while len(first) < 8:  # the tag and length of the first record
             first += client.read_some()
         first_frame = time.monotonic() - start
-        client.sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\0\0\0\0\0\0\0")
-        calls_at_reset = slow.calls
-        client.close()  # RST
-        freed = _wait_for(lambda: _idle(guarded), 5)
-        after = slow.calls - calls_at_reset
+        freed, after = _reset(client, guarded, slow, 5)
     finally:
         network.predict = model
     assert first.startswith(b"FRAM") and first_frame < 1.0, first_frame

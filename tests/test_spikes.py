@@ -132,3 +132,24 @@ def test_empty_or_foreign_files_get_one_line_and_exit_2(tmp_path, capsys, name, 
     assert main(["reconstruct", str(path), "--out", str(tmp_path / "o.npz"), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert words in err and "\n" not in err and "pickle" not in err and "Traceback" not in err
+
+
+def test_a_dat_stream_behaves_like_the_array_it_holds(tmp_path):
+    """``np.asarray``, ``len``, ``shape``, ``dtype``, a frame and a slice: what a user does with
+    the ``(T, H, W)`` array the docs promise, without decoding more than asked."""
+    frames = (np.random.default_rng(4).random((9, 5, 16)) < 0.4).astype(np.uint8)
+    path = tmp_path / "s.dat"
+    write_spikes(path, frames)
+    stream = read_spikes(path, 5, 16)
+    assert isinstance(stream, DatStream)
+    assert len(stream) == 9 and stream.shape == (9, 5, 16) and stream.ndim == 3
+    assert np.array_equal(np.asarray(stream), frames) and np.asarray(stream).dtype == stream.dtype
+    assert np.asarray(stream, dtype=np.float32).dtype == np.float32
+    assert np.array_equal(stream[3], frames[3]) and np.array_equal(stream[-1], frames[-1])
+    assert np.array_equal(stream[2:5], frames[2:5])
+    with pytest.raises(IndexError, match="frame 9 of a 9-frame stream"):
+        stream[9]
+    with pytest.raises(TypeError, match="np.asarray"):
+        stream[[1, 2]]
+    with pytest.raises(ValueError, match="copy=False"):
+        np.asarray(stream, copy=False)

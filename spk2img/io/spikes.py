@@ -7,6 +7,7 @@ first. In memory a stream is ``(T, H, W) uint8`` of 0/1, upright, time first.
 
 from __future__ import annotations
 
+import operator
 import zipfile
 from pathlib import Path
 
@@ -122,9 +123,14 @@ def _check_values(frames: np.ndarray, where: str = "", first: int = 0) -> None:
 class DatStream:
     """A ``.dat`` file opened memory-mapped: frames are decoded only when indexed.
 
-    ``len(stream)`` is the frame count; ``stream[a:b]`` returns ``(b-a, H, W) uint8`` upright.
-    A multi-GB recording is never loaded whole.
+    ``len(stream)`` is the frame count and ``stream.shape`` ``(T, H, W)``; ``stream[a:b]``
+    returns ``(b-a, H, W) uint8`` upright and ``stream[k]`` frame ``k`` as ``(H, W)``. A
+    multi-GB recording is never loaded whole, unless asked: ``np.asarray(stream)`` decodes
+    every frame (``T·H·W`` bytes).
     """
+
+    dtype = np.dtype(np.uint8)
+    ndim = 3
 
     def __init__(self, path: str | Path, height: int = DEFAULT_HEIGHT, width: int = DEFAULT_WIDTH):
         self.path = Path(path)
@@ -147,9 +153,24 @@ class DatStream:
     def __len__(self) -> int:
         return self._raw.size // self.frame_nbytes
 
-    def __getitem__(self, index: slice) -> np.ndarray:
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        if copy is False:
+            raise ValueError("a .dat stream is decoded into a new array: copy=False cannot hold")
+        frames = self[0 : len(self)]
+        return frames if dtype is None else frames.astype(dtype)
+
+    def __getitem__(self, index: slice | int) -> np.ndarray:
+        if isinstance(index, (int, np.integer)):
+            frame = operator.index(index)
+            if not -len(self) <= frame < len(self):
+                raise IndexError(f"frame {frame} of a {len(self)}-frame stream")
+            frame %= len(self)
+            return self[frame : frame + 1][0]
         if not isinstance(index, slice):
-            raise TypeError("DatStream supports slices of frames only, e.g. stream[10:51]")
+            raise TypeError(
+                "a DatStream takes a frame (stream[10]) or a slice of frames (stream[10:51]); "
+                "np.asarray(stream) decodes them all"
+            )
         start, stop, step = index.indices(len(self))
         if step != 1:
             raise TypeError("DatStream slices must be contiguous (step 1)")
