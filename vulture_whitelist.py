@@ -50,6 +50,19 @@ _.display_grey  # spk2img.evaluation.niqe
 # FastAPI routes of the viewer (spk2img/service/routers/viewer.py), registered by their decorators
 _.page
 _.static_file
+_.api_page
+
+# functools.singledispatch registrations of spk2img/sim/torch_render.py's render, per scene type
+_._moving
+_._layered
+_._clip
+_._still
+
+# uvicorn.Server: the hook _ProbeServer overrides, and the flags that stop a server
+# (spk2img/service/server.py's Listeners)
+_.capture_signals
+_.should_exit
+_.force_exit
 
 # pydantic field validator of ServiceSettings, called by pydantic
 _._device_runs_here  # spk2img.service.settings
