@@ -119,7 +119,14 @@ SHORTENED = {
         f"spk2img reconstruct {SAMPLE} --out out/frames.npz --png-dir out/png --stride 7",
     ): [("--stride 7", "--centers 20,27")],
     ("README.md", "import spk2img"): [("stride=7)", "centers=[20, 27])")],
-    ("docs/export.md", "import time, numpy as np"): [("range(7)", "range(1)"), ("(1, 2)", "(2,)")],
+    ("docs/export.md", "import time, numpy as np"): [
+        ("range(7)", "range(1)"),
+        ("(1, 2)", "(2,)"),
+        ("spk2img-default.onnx", "spk2img-tiny.onnx"),
+    ],
+    ("docs/binning.md", "k = spk2img.suggest_binning(spikes)  # 1 for a normally lit stream"): [
+        ("stride=20", "centers=[60]")
+    ],
 }
 """Replacements that shorten long blocks (fewer frames or repeats, the same calls)."""
 
@@ -129,9 +136,9 @@ CONTEXT = {
         "spk2img reconstruct dim.npz --out out.npz --binning auto      # or --binning 3",
     ): (
         "before",
-        "spk2img simulate dim.dat --frames 300 --height 64 --width 80 --brightness dim -q\n"
-        "python -c \"import spk2img; s = spk2img.read_spikes('dim.dat', 64, 80); "
-        "spk2img.write_spikes('dim.npz', s[0:300])\"\n",
+        "spk2img simulate dim.dat --frames 200 --height 48 --width 64 --brightness dim -q\n"
+        "python -c \"import spk2img; s = spk2img.read_spikes('dim.dat', 48, 64); "
+        "spk2img.write_spikes('dim.npz', s[0:200])\"\n",
     ),
     ("docs/binning.md", "k = spk2img.suggest_binning(spikes)  # 1 for a normally lit stream"): (
         "before",
