@@ -1,6 +1,6 @@
 """Samples per second of training with each spike simulator, side by side in one run.
 
-``python scripts/synthesis_speed.py --data DATA [--member small] [--batch-size 16] [--patch 48]
+``python scripts/synthesis_speed.py [--data DATA] [--member small] [--batch-size 16] [--patch 48]
 [--device cpu] [--workers 1] [--steps 12] [--json docs/synthesis_speed.json]`` measures, on one
 device, in one process:
 
@@ -41,7 +41,7 @@ from spk2img.training.train import train
 
 def synthesis_rates(args, device: torch.device) -> dict:
     """Samples a second of each simulator alone, in this process."""
-    index = SourceIndex.scan(args.data, args.patch, NEVER_TRAINED)
+    index = SourceIndex.scan(args.data, args.patch, NEVER_TRAINED) if args.data else None
     maker = SampleMaker(
         args.patch,
         seed=1,
@@ -105,7 +105,7 @@ def training_rate(args, synthesis: str, run_dir: Path) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", action="append", required=True)
+    parser.add_argument("--data", action="append", default=[], help="none: procedural only")
     parser.add_argument("--member", default="small")
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--patch", type=int, default=48)
