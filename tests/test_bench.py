@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +16,7 @@ from PIL import Image
 
 from spk2img.bench.cases import SCENE_CLASSES, benchmark_set
 from spk2img.bench.natural import natural_set
+from spk2img.bench.profile import summarise, top_operators
 from spk2img.bench.rows import BACKENDS, NetRow, TfiRow, TfpRow, row_from_json, row_to_json
 from spk2img.bench.runner import QUICK
 from spk2img.bench.scores import best_tfp_window, quality
@@ -174,6 +176,40 @@ def test_quick_markdown_tables(quick_run):
         assert f"| {row['label']} | {row['backend']} |" in table
     assert "| untrained | untrained |" in table
     assert "nan" not in table and "inf" not in table
+
+
+def test_quick_profile_says_where_each_graph_spends_its_time(quick_run):
+    """Every fp32 ONNX row is profiled: its call's ms and its kernels by operator type, whose
+    sum stays within the call, Conv among them; the report names the top types with shares."""
+    _, results, text = quick_run
+    onnx_rows = {
+        r["label"] for r in results["rows"] if r["kind"] == "net" and r["backend"] == "onnx"
+    }
+    profiles = results["profiles"]
+    assert {p["label"] for p in profiles} == onnx_rows and onnx_rows
+    for profile in profiles:
+        assert "error" not in profile, profile
+        assert 0 < sum(profile["ops"].values()) <= profile["run_ms"] * profile["threads"] + 1
+        assert "Conv" in profile["ops"]
+    section = text.split("## Where the time goes")[1].split("##")[0]
+    for profile in profiles:
+        assert f"| {profile['label']} |" in section
+    assert re.search(r"Conv \d+ %", section)
+
+
+def test_summarise_reads_the_last_run_of_a_trace():
+    kernel = {"cat": "Node", "ph": "X"}
+    events = [
+        {"name": "model_run", "ts": 0, "dur": 100},
+        {**kernel, "name": "a_kernel_time", "ts": 10, "dur": 50, "args": {"op_name": "Conv"}},
+        {"name": "model_run", "ts": 200, "dur": 90},
+        {**kernel, "name": "b_kernel_time", "ts": 210, "dur": 30, "args": {"op_name": "Conv"}},
+        {**kernel, "name": "c_kernel_time", "ts": 250, "dur": 20, "args": {"op_name": "Relu"}},
+        {**kernel, "name": "c_fence_before", "ts": 250, "dur": 5, "args": {"op_name": "Relu"}},
+    ]
+    assert summarise(events) == {"run_ms": 0.09, "ops": {"Conv": 0.03, "Relu": 0.02}}
+    shares = top_operators({"Conv": 6.0, "Relu": 3.0, "Add": 1.0}, count=2)
+    assert shares == [("Conv", 0.6), ("Relu", 0.3), ("other", pytest.approx(0.1))]
 
 
 def test_rows_round_trip_through_json():

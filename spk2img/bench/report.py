@@ -22,6 +22,7 @@ import math
 from pathlib import Path
 
 from .cases import SCENE_CLASSES
+from .profile import top_operators
 
 MD_NAME, JSON_NAME, PLOT_NAME = "bench.md", "bench.json", "images/pareto.png"
 DASH = "—"
@@ -47,6 +48,7 @@ def markdown(results: dict) -> str:
         class_table(results),
         natural_table(results),
         efficiency_table(results),
+        profile_table(results),
         service_table(results),
         gpu_table(results),
         f"![PSNR against time per frame]({PLOT_NAME})\n",
@@ -221,6 +223,31 @@ def efficiency_table(results: dict) -> str:
         cells = [f"{rate[t]:.1f}" for t in threads]
         cells += [f"{100 * rate[t] / peak[str(t)]:.0f} %" for t in threads]
         lines.append(table_row([row["label"], row["backend"], *cells]))
+    return "\n".join(lines) + "\n"
+
+
+def profile_table(results: dict) -> str:
+    """Where each fp32 ONNX graph's time goes (onnxruntime's profiler, one call)."""
+    profiles = results.get("profiles") or []
+    s = results["settings"]
+    lines = [
+        "## Where the time goes",
+        "",
+        f"onnxruntime's profiler over one call of each fp32 graph at {s['height']}x{s['width']} "
+        "(the second of two), its kernels' time by operator type (`spk2img.bench.profile`).",
+        "",
+        *table_head(["graph", "threads", "call (ms)", "kernels by operator type"]),
+    ]
+    for profile in profiles:
+        if "error" in profile:
+            cells = ["—", f"failed: {profile['error']}"]
+        else:
+            shares = top_operators(profile["ops"])
+            cells = [
+                f"{profile['run_ms']:.0f}",
+                ", ".join(f"{name} {100 * share:.0f} %" for name, share in shares),
+            ]
+        lines.append(table_row([profile["label"], str(profile["threads"]), *cells]))
     return "\n".join(lines) + "\n"
 
 

@@ -148,6 +148,7 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
                 f"[{i + 1}/{len(plan.items)}] {item.label}, {item.backend}: "
                 f"{progress_text(entries[-1])}"
             )
+        profiles = profile_run(plan.items, options, cases_dir, log)
         score(entries, plan.items, images, cases)
         if natural is not None:
             for i, row_images in natural_images.items():
@@ -185,11 +186,29 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         "shipped_installed": any(w.name == "shipped" for w in plan.weights),
         "matmul_gflops": matmul,
         "rows": entries,
+        "profiles": profiles,
         "service": service,
         "streaming": streaming,
         "tiers": tiers,
         "gpu": on_gpu,
     }
+
+
+def profile_run(items: list, options: BenchOptions, cases_dir: Path, log: Log) -> list[dict]:
+    """Where each fp32 ONNX graph's time goes (:mod:`spk2img.bench.profile`), at the largest
+    thread count: ``label``, ``run_ms`` and ``ops`` (ms by operator type), or ``error``."""
+    threads = [max(options.threads)]
+    profiles = []
+    for item in items:
+        if not (isinstance(item, NetRow) and item.backend == "onnx"):
+            continue
+        log(f"profiling {item.label}")
+        spec = {"job": "profile", "model": item.path, "threads": threads, "cases": str(cases_dir)}
+        try:
+            profiles.append({"label": item.label, "threads": threads[0], **run_job(spec)})
+        except WorkerError as exc:
+            profiles.append({"label": item.label, "threads": threads[0], "error": str(exc)})
+    return profiles
 
 
 def natural_run(options: BenchOptions, log: Log) -> NaturalSet | None:

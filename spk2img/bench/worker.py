@@ -9,6 +9,9 @@
   timed window only: ``(N, H, W) float32``. With ``"natural": DIR2, "natural_outputs": PATH2``
   also its images of every window saved in ``DIR2`` (the natural validation), to ``PATH2``.
 - ``{"job": "matmul", "threads": [1, 2], "repeats": 5}``: the fp32 matmul GFLOP/s.
+- ``{"job": "profile", "model": ONNX, "threads": [1], "cases": DIR}``: onnxruntime's profiler
+  over one call on the first window of the benchmark set: ms by operator type
+  (:mod:`spk2img.bench.profile`).
 - ``{"job": "stream", "model": ONNX, "mode": "whole"|"reuse", "threads": [1], "spikes": NPY,
   "stride": 7, "outputs": PATH}``: stream the ``(T, H, W)`` spikes through the network at every
   ``stride``-th centre (null: the model's block stride), each window whole or each block
@@ -192,8 +195,16 @@ def measure_tiers(spec: dict) -> dict:
     return {"seconds": seconds, "balanced_share": shares, "peak_rss_mib": peak_rss_mib()}
 
 
+def measure_profile(spec: dict) -> dict:
+    from .profile import operator_times
+
+    window = np.asarray(load_spikes(Path(spec["cases"]))[0:1], np.float32)
+    return operator_times(spec["model"], window, max(spec["threads"]))
+
+
 JOBS = {
     "row": measure_row,
+    "profile": measure_profile,
     "matmul": measure_matmul,
     "stream": measure_stream,
     "tiers": measure_tiers,
