@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from spk2img.cli import main
+from spk2img.clients import Client
 from spk2img.io import frame_store
 from spk2img.io.frame_store import FrameStore, partial_dir
 from spk2img.io.spikes import write_spikes
@@ -76,3 +77,33 @@ def test_nothing_to_resume_is_an_error(tmp_path, stream, capsys):
     out = tmp_path / "o.npz"
     assert main(["reconstruct", str(stream), "--out", str(out), "--method", "tfp", "--resume"]) == 2
     assert "nothing to resume" in capsys.readouterr().err
+
+
+def test_a_remote_run_resumes_through_the_service_too(
+    tmp_path, stream, monkeypatch, capsys, service
+):
+    """``--url``: interrupted after 10 of 38 frames, resumed with ``--resume``: the service is
+    asked for the 28 owed centres only, and the result equals an uninterrupted remote run."""
+    flags = ["--method", "net", "--stride", "7", "--no-progress", "--url", service.url]
+    whole = tmp_path / "whole.npz"
+    assert main(["reconstruct", str(stream), "--out", str(whole), *flags]) == 0
+    expected = np.load(whole)
+    out = tmp_path / "run.npz"
+    args = ["reconstruct", str(stream), "--out", str(out), *flags]
+    with monkeypatch.context() as patched:
+        interrupt_after(patched, 10)
+        assert main(args) == 130
+    assert "interrupted: 10 of 38 frames kept" in capsys.readouterr().err
+    asked = []
+    reconstruct = Client.reconstruct
+
+    def recording(self, source, *rest, **options):
+        asked.append(options.get("centers"))
+        return reconstruct(self, source, *rest, **options)
+
+    monkeypatch.setattr(Client, "reconstruct", recording)
+    assert main([*args, "--resume"]) == 0
+    assert asked == [expected["centers"][10:].tolist()]
+    resumed = np.load(out)
+    np.testing.assert_array_equal(resumed["centers"], expected["centers"])
+    np.testing.assert_array_equal(resumed["frames"], expected["frames"])

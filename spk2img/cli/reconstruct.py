@@ -124,8 +124,6 @@ def run(args: argparse.Namespace) -> int:
     interrupted run keeps every finished frame and ``--resume`` continues it."""
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
-    if args.resume and args.url:
-        raise InputError("--resume continues a local run: drop --url")
     spikes = api.read_spikes(args.input, args.height, args.width)
     if isinstance(spikes, DatStream) and not args.force_size:
         check_frame_size(args.input, args.height, args.width)
