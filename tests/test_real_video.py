@@ -15,7 +15,6 @@ from spk2img.evaluation.real_video import (
     REAL_VIDEO_CLIPS,
     SPEEDS,
     RealVideoWindow,
-    display_light,
     film,
     find_real_video_clips,
     real_video_scenes,
@@ -25,7 +24,7 @@ from spk2img.evaluation.real_video import (
 from spk2img.io.light import SPIKE_RATE
 from spk2img.sim.natural_scenes import CLIP_MARGIN
 from spk2img.sim.simulator import FILM_FRAMES
-from spk2img.sim.sources import SourceIndex
+from spk2img.sim.sources import SourceIndex, to_light
 from spk2img.training.model_card import real_video_section
 
 H, W = 64, 96
@@ -44,7 +43,7 @@ def moving_texture(frames: int, px_per_frame: float) -> tuple[np.ndarray, ...]:
 
 @given(arrays(np.uint8, (3, 5)))
 def test_display_light_is_the_frame_value_over_255(grey):
-    light = display_light(grey)
+    light = to_light(grey, "display")
     assert light.dtype == np.float32
     np.testing.assert_array_equal(light, grey.astype(np.float32) / 255)
 

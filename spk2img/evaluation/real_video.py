@@ -11,7 +11,8 @@ with linear light, and its scores did not predict that benchmark's. Here:
   each) and the 4 Vid4 clips, whole frames (less a margin of :data:`~spk2img.sim.natural_scenes.
   CLIP_MARGIN` pixels for the flow), never trained on (training skips them whatever ``--data``
   holds).
-- **Light**: display-referred, ``value / 255`` (:func:`display_light`).
+- **Light**: display-referred, ``value / 255`` (:func:`~spk2img.sim.sources.to_light`'s
+  ``display`` convention).
 - **Motion**: the clip's own, interpolated between video frames along its optical flow
   (:class:`~spk2img.sim.natural_scenes.ClipScene`). The spike frames per video interval are set
   so that the clip's median flow magnitude is each speed of :data:`SPEEDS` px a spike frame,
@@ -33,7 +34,7 @@ from spk2img.evaluation.scoring import group_scores, image_scores, mean_scores
 from spk2img.evaluation.window_sets import seed_of
 from spk2img.sim.natural_scenes import CLIP_MARGIN, ClipScene, dis_flow
 from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES, SensorConfig, ground_truth, simulate
-from spk2img.sim.sources import FrameFolder, SourceIndex, load_clip
+from spk2img.sim.sources import FrameFolder, SourceIndex, load_clip, to_light
 
 X4K_CLIPS = (
     "x4k1000fps_TEST01_003_f0433",
@@ -63,12 +64,6 @@ about seven times faster motion (capped, like any bin, by what a window in the c
 0.19-0.94 px a spike frame on these clips)."""
 SEEDS = 3
 """Draws of the sensor's initial charge per window by default."""
-
-
-def display_light(grey: np.ndarray) -> np.ndarray:
-    """``(H, W) uint8`` frame values -> ``(H, W) float32`` light in [0, 1]: ``value / 255``, the
-    field's convention (no display gamma undone)."""
-    return np.asarray(grey, np.float32) / 255
 
 
 @dataclass(frozen=True)
@@ -103,13 +98,13 @@ def real_video_scenes(
 ) -> list[RealVideoScene]:
     """Clip ``name``'s ``(H, W) uint8`` frames as a scene at each of ``speed_bins``: moving at
     ``SPEEDS[bin]`` px a spike frame (or as fast as a ``window``-frame window in the clip
-    allows), the window in the middle of the clip, light by :func:`display_light`; the clip's
-    flows computed once."""
+    allows), the window in the middle of the clip, light by the ``display`` convention; the
+    clip's flows computed once."""
     if len(frames) < 2:
         raise ValueError(f"clip {name} has {len(frames)} frame(s): at least 2 are needed")
     forward = np.stack([dis_flow(a, b) for a, b in zip(frames, frames[1:], strict=False)])
     backward = np.stack([dis_flow(b, a) for a, b in zip(frames, frames[1:], strict=False)])
-    light = np.stack([display_light(f) for f in frames])
+    light = np.stack([to_light(f, "display") for f in frames])
     per_video_frame = float(np.median(np.linalg.norm(forward, axis=-1)))
     intervals = len(frames) - 1
     scenes = []
