@@ -27,6 +27,8 @@ _.enable_cpu_mem_arena  # onnxruntime.SessionOptions
 _.intra_op_num_threads
 _.inter_op_num_threads
 _.writeable  # numpy's ndarray.flags
+_.enable_profiling  # onnxruntime.SessionOptions (spk2img/bench/profile.py)
+_.profile_file_prefix
 
 # public API that only the tests use inside this repository
 _.write_spikes  # spk2img.io.spikes: writes a stream as .dat, .npy or .npz

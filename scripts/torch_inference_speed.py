@@ -59,8 +59,9 @@ def measure(model, windows, device, precisions, batches, repeats, compiled) -> l
             x = windows[:1].expand(batch, -1, -1, -1).contiguous()
 
             def run(net=net, x=x, dtype=dtype):
-                with torch.inference_mode(), torch.autocast(
-                    device.type, dtype or torch.float32, enabled=dtype is not None
+                with (
+                    torch.inference_mode(),
+                    torch.autocast(device.type, dtype or torch.float32, enabled=dtype is not None),
                 ):
                     return net(x)[0][:, 0].float()
 
