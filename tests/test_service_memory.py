@@ -14,7 +14,7 @@ from service_support import OCTET, run_server, stream_bytes
 import spk2img
 from spk2img.model.config import get_config
 from spk2img.service.memory import budget_problem, container_limit_bytes, release_free_memory
-from spk2img.service.reconstruction import NET_BYTES_PER_PIXEL, padded_pixels
+from spk2img.service.reconstruction import NET_BYTES_PER_PIXEL
 
 SHAPES = [(1, 8000), (2, 4000), (8000, 1), (90, 90)]
 """Thin (one and two rows or columns), square and wide frames of about 8,000 pixels."""
@@ -60,7 +60,8 @@ def test_every_frame_shape_peaks_inside_its_memory_estimate(shape):
     let thin frames past the budget."""
     height, width = shape
     geometry = get_config("small").geometry
-    estimate = padded_pixels(height, width, geometry) * NET_BYTES_PER_PIXEL
+    padded_height, padded_width = geometry.padded_size(height, width)
+    estimate = padded_height * padded_width * NET_BYTES_PER_PIXEL
     peak = call_peak_bytes(height, width)
     assert peak <= estimate, (shape, peak / 2**20, estimate / 2**20)
     if min(shape) == 1:

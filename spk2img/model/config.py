@@ -59,6 +59,12 @@ class Geometry:
         frames the ground truth of training is taken at."""
         return tuple(s + self.half + self.block_frames // 2 for s in self.block_starts)
 
+    def padded_size(self, height: int, width: int) -> tuple[int, int]:
+        """The ``(height, width)`` the network computes a frame at: both sides padded up to a
+        multiple of :attr:`size_multiple` (``pad_to_multiple`` in the network)."""
+        m = self.size_multiple
+        return -(-height // m) * m, -(-width // m) * m
+
     def crop(self, windows, axis: int = 0):
         """The centred :attr:`window_frames` of longer windows whose frames run along ``axis``
         (an array; a window of the right length is returned as it is); a shorter or

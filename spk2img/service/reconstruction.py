@@ -35,11 +35,12 @@ STEP_PIXELS = 2**22
 
 NET_BYTES_PER_PIXEL = 14 * 2**10
 """Peak memory of one model call per window pixel of the frame as the network pads it (both
-sides up to a multiple of its ``size_multiple``): measured with the shipped model and
+sides up to a multiple of its ``size_multiple``, :meth:`Geometry.padded_size`): measured with
+the shipped model and
 onnxruntime 1.32 (CPU, no arena) at 11.4 KiB (250x400), 12.7 KiB (125x200) and 13.2 KiB (64x64)
 per pixel, whole graph or block encoder and head; rounded up. Thin frames pay for their padding:
-one row of 20,000 pixels peaked at 44.6 KiB a pixel (3.2x; padded to 4 rows: 11.2 KiB a padded
-pixel), two rows at 26 KiB (tests/test_service_memory.py measures thin, square and wide)."""
+one row of 20,000 pixels peaked at 36.7 KiB a pixel (9.2 KiB a padded pixel), one column at
+43.7, two rows at 19.3 (tests/test_service_memory.py measures thin, square and wide)."""
 WINDOW_BYTES_PER_PIXEL = 16
 """Per pixel and frame of the window: the spikes (uint8) and their float32 copy, with slack."""
 JOB_BYTES = 16 * 2**20
@@ -72,8 +73,8 @@ def job_memory(
     window = method_window(query.method, query.window, query.binning, geometry=geometry)
     memory = JOB_BYTES + settings.read_ahead_bytes + pixels * window * WINDOW_BYTES_PER_PIXEL
     if model:
-        net_pixels = padded_pixels(query.height, query.width, geometry)
-        memory += net_pixels * NET_BYTES_PER_PIXEL * settings.batch
+        padded_height, padded_width = geometry.padded_size(query.height, query.width)
+        memory += padded_height * padded_width * NET_BYTES_PER_PIXEL * settings.batch
     return memory + min(response_bytes, settings.response_buffer_bytes)
 
 
@@ -83,13 +84,6 @@ def typical_request_bytes(settings: ServiceSettings, geometry: Geometry) -> int:
     query = ReconstructQuery(height=DEFAULT_HEIGHT, width=DEFAULT_WIDTH, centers=str(geometry.half))
     cost = job_memory(query, settings, frame_record_bytes(query), geometry)
     return min(cost, settings.memory_budget_bytes) if settings.memory_budget_bytes else cost
-
-
-def padded_pixels(height: int, width: int, geometry: Geometry) -> int:
-    """Pixels of a ``height x width`` frame as the network computes it: both sides padded up to
-    a multiple of ``geometry.size_multiple``."""
-    m = geometry.size_multiple
-    return -(-height // m) * m * (-(-width // m) * m)
 
 
 def frame_record_bytes(query: ReconstructQuery) -> int:

@@ -37,12 +37,13 @@ def film_plans(
     ground truth at its block centres of ``plans``, on ``generator``'s device, augmented."""
     device = generator.device
     frames = geometry.window_frames
-    times = substep_times(0.0, frames, SUBSTEPS)
-    light = torch.stack([render(plan.scene, times, device) for plan in plans])
+    samples = frames * SUBSTEPS  # the light's times, then the truth's (one render per scene)
+    centres = np.asarray(geometry.block_centres, np.float64) + 0.5
+    times = np.concatenate([substep_times(0.0, frames, SUBSTEPS), centres])
+    rendered = torch.stack([render(plan.scene, times, device) for plan in plans])
+    light, truth = rendered[:, :samples], rendered[:, samples:]
     b, _, h, w = light.shape
     spikes = film(light.reshape(b, frames, SUBSTEPS, h, w), [p.sensor for p in plans], generator)
-    centres = np.asarray(geometry.block_centres, np.float64) + 0.5
-    truth = torch.stack([render(plan.scene, centres, device) for plan in plans])
     turned = [augment((s, t), plan) for s, t, plan in zip(spikes, truth, plans, strict=True)]
     return (
         torch.stack([s for s, _ in turned]).float(),
