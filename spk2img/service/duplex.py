@@ -19,7 +19,10 @@ Three parts run at once:
   buffer is full has its connection closed (counted as ``unread``).
 
 The status line goes out with the first record, so an error found before any record is a JSON
-4xx; after it an ``ERRO`` record ends the stream.
+4xx; after it an ``ERRO`` record ends the stream. Either way, the rest of a body still coming is
+read and dropped for up to :data:`LINGER_SECONDS` before the connection closes: a server that
+closes with body bytes unread resets the connection, and the reset can drop the answer before
+a client that sends its whole body first gets to read it.
 """
 
 from __future__ import annotations
@@ -42,6 +45,9 @@ from .reconstruction import StreamJob
 from .settings import ServiceSettings
 
 T = TypeVar("T")
+
+LINGER_SECONDS = 2.0
+"""How long the rest of a refused body is read (and dropped) before the connection closes."""
 
 
 class ClientGone(Exception):
@@ -135,6 +141,7 @@ class FramesResponse(Response):
             self.metrics.errors.labels("408", "slow_upload").inc()
         if not outbox.started:
             headers = dict(error.headers or {})
+            await self._linger(upload, error)
             if not upload.complete:  # the rest of the body is not read: close the connection
                 headers["Connection"] = "close"
             response = error_response(RequestError(error.status, error.detail, headers))
@@ -143,6 +150,12 @@ class FramesResponse(Response):
             return
         self.metrics.errors.labels(str(error.status), "in_band").inc()
         await outbox.put([encode_error(error.detail, error.status)], frames=False)
+        await self._linger(upload, error)
+
+    @staticmethod
+    async def _linger(upload: _Upload, error: RequestError) -> None:
+        if error.status != 408:  # a stalled or timed-out upload gets no more time
+            await upload.linger(LINGER_SECONDS)
 
 
 class _Upload:
@@ -239,6 +252,18 @@ class _Upload:
             task.cancel()
             raise ClientGone
         return task.result()
+
+    async def linger(self, seconds: float) -> None:
+        """Read and drop the rest of the body for up to ``seconds`` (a refused request's body
+        still coming); stop early when it ends, stalls or the client leaves."""
+        if self.complete:
+            return
+        try:
+            async with asyncio.timeout(seconds):
+                while await self.next() is not None:
+                    pass
+        except (TimeoutError, ClientGone, SlowUpload):
+            pass
 
     def stop(self) -> None:
         self._task.cancel()
