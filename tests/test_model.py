@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from spk2img.model.block_split import key_terms, neighbour_terms
 from spk2img.model.checkpoint import (
@@ -22,6 +24,7 @@ from spk2img.model.complexity import count_macs, count_parameters, count_stream_
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
 from spk2img.model.network import build_model
+from spk2img.model.sali import LightInference, fold, unfold
 
 torch.set_num_threads(1)
 
@@ -158,6 +161,71 @@ def test_config_rejects_impossible_shapes():
         Spk2ImgNetConfig(sali_subwindows=(13, 10))
     with pytest.raises(ValueError, match="unknown model"):
         get_config("huge")
+    with pytest.raises(ValueError, match="sali_stride"):
+        Spk2ImgNetConfig(sali_stride=2, feature_stride=3)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    stride=st.integers(1, 4),
+    channels=st.integers(1, 3),
+    rows=st.integers(1, 3),
+    cols=st.integers(1, 3),
+    seed=st.integers(0, 2**16),
+)
+def test_fold_puts_each_patch_pixel_in_its_documented_channel(stride, channels, rows, cols, seed):
+    generator = torch.Generator().manual_seed(seed)
+    x = torch.randn(2, channels, rows * stride, cols * stride, generator=generator)
+    folded = fold(x, stride)
+    assert folded.shape == (2, channels * stride**2, rows, cols)
+    for c in range(channels):
+        for y in range(rows * stride):
+            for x_ in range(cols * stride):
+                channel = c * stride**2 + (y % stride) * stride + x_ % stride
+                assert torch.equal(folded[:, channel, y // stride, x_ // stride], x[:, c, y, x_])
+    assert torch.equal(unfold(folded, stride), x)
+
+
+def _averaging_sali(stride: int) -> LightInference:
+    """A folded SALI whose every estimate is the mean spike count of its sub-window at each
+    pixel (hidden = stride**2: one hidden channel per pixel of the patch) and whose attention
+    weighs every estimate by sigmoid(0) = 1/2."""
+    pixels = stride**2
+    sali = LightInference(13, (13, 11, 9, 7), pixels, 4, stride)
+    with torch.no_grad():
+        for parameter in sali.parameters():
+            parameter.zero_()
+        for branch, n in zip(sali.branches, (13, 11, 9, 7), strict=True):
+            for p in range(pixels):
+                branch[0].weight[p, p::pixels, 1, 1] = 1 / n  # mean over the sub-window's frames
+                branch[2].weight[p, p, 1, 1] = 1
+    return sali
+
+
+def test_folded_sali_estimates_stay_at_their_pixels():
+    """With SALI on folded 4x4 patches, the estimates of each sub-window, unfolded, sit at the
+    pixels whose spikes made them: an averaging SALI gives each sub-window's spike mean."""
+    stride, h, w = 4, 8, 12
+    block = (torch.rand(3, 13, h, w, generator=torch.Generator().manual_seed(2)) < 0.4).float()
+    weighted, estimates = _averaging_sali(stride)(fold(block, stride))
+    spans = [(0, 13), (1, 12), (2, 11), (3, 10)]
+    expected = torch.stack([block[:, a:b].mean(1) for a, b in spans], dim=1)  # (3, 4, h, w)
+    torch.testing.assert_close(unfold(estimates, stride), expected)
+    torch.testing.assert_close(unfold(weighted, stride), expected / 2)
+
+
+def test_the_cpu_member_reads_each_block_of_the_window_folded():
+    """``cpu`` slices its five blocks out of the folded window: its SALI estimates (averaging
+    weights) are each block's sub-window means, at every pixel of an odd-sized window."""
+    model = build_model("cpu").eval()
+    model.sali = _averaging_sali(4)
+    spikes = (torch.rand(1, 41, 21, 35, generator=torch.Generator().manual_seed(3)) < 0.3).float()
+    with torch.no_grad():
+        _, estimates = model(spikes)  # (1, 5, 4, 21, 35), divided by 0.6
+    for block, start in enumerate((0, 7, 14, 21, 28)):
+        for index, (a, b) in enumerate([(0, 13), (1, 12), (2, 11), (3, 10)]):
+            mean = spikes[0, start + a : start + b].mean(0)
+            torch.testing.assert_close(estimates[0, block, index] * 0.6, mean)
 
 
 def test_paper_forward_on_a_small_window():

@@ -35,6 +35,7 @@ def test_the_published_geometry():
     assert g.block_centres == (6, 13, 20, 27, 34)
     assert all(MEMBERS[m].geometry.window_frames == 41 for m in MEMBERS)
     assert MEMBERS["small"].geometry.size_multiple == 4 and MEMBERS["lite"].size_multiple == 8
+    assert MEMBERS["cpu"].size_multiple == 16
 
 
 @given(

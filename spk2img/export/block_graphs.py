@@ -45,6 +45,7 @@ from .onnx_export import (
     ExportConfig,
     ExportSource,
     GraphIO,
+    example_size,
     finish_graph,
     name_dims,
     trace_to_onnx,
@@ -72,7 +73,7 @@ def export_block_graphs(
     }
 
     block = torch.zeros(
-        config.example_batch, cfg.block_frames, config.example_height, config.example_width
+        config.example_batch, cfg.block_frames, *example_size(config, cfg.size_multiple)
     )
     block[:, ::3] = 1.0  # some spikes; the values do not shape the trace
     encoder_io = GraphIO([BLOCK_INPUT], names, {BLOCK_INPUT: {0: "batch", 2: "height", 3: "width"}})

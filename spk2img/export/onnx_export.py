@@ -144,8 +144,9 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
     Returns the written model. Raises :class:`ExportError` if the checker fails or the graph
     uses an operator outside the standard ONNX domain.
     """
-    frames = source.model.config.window_frames
-    example = torch.zeros(config.example_batch, frames, config.example_height, config.example_width)
+    cfg = source.model.config
+    frames = cfg.window_frames
+    example = torch.zeros(config.example_batch, frames, *example_size(config, cfg.size_multiple))
     example[:, ::3] = 1.0  # some spikes; the values do not shape the trace
     model = trace_to_onnx(
         ImageOnly(source.model),
@@ -156,6 +157,17 @@ def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> 
     io = one_shot_io(frames)
     name_dims(list(model.graph.output), io)  # the crop back to H x W
     return finish_graph(model, source.metadata, config, out, io)
+
+
+def example_size(config: ExportConfig, multiple: int) -> tuple[int, int]:
+    """``(height, width)`` of the example a network padding to ``multiple`` is traced with: the
+    export config's, grown by whole multiples where the coarsest level of the padded example
+    would be square or one cell wide (the exporter then ties the two sides together, or to a
+    constant, and the graph fails at other sizes)."""
+    cells_h, cells_w = -(-config.example_height // multiple), -(-config.example_width // multiple)
+    grow_h = max(2 - cells_h, 0)
+    grow_w = max(cells_h + grow_h + 1 - cells_w, 0)
+    return config.example_height + grow_h * multiple, config.example_width + grow_w * multiple
 
 
 @dataclass(frozen=True)

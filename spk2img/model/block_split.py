@@ -24,6 +24,7 @@ from torch import nn
 from .alignment import PCDAlignment
 from .block_code import CODE_ROLES
 from .network import Spk2ImgNet, pad_to_multiple, per_neighbour, to_intensity, without_key
+from .sali import fold
 
 
 def neighbour_terms(align: PCDAlignment, pyramid: list[torch.Tensor]) -> list[torch.Tensor]:
@@ -74,7 +75,8 @@ class BlockEncoder(nn.Module):
 
     def forward(self, block: torch.Tensor) -> tuple[torch.Tensor, ...]:
         net = self.model
-        weighted, _ = net.sali(pad_to_multiple(block, net.config.size_multiple))
+        cfg = net.config
+        weighted, _ = net.sali(fold(pad_to_multiple(block, cfg.size_multiple), cfg.sali_stride))
         pyramid = net.block_pyramid(weighted)
         return (*pyramid, *neighbour_terms(net.align, pyramid), *key_terms(net.align, pyramid))
 

@@ -119,6 +119,10 @@ class Spk2ImgNetConfig:
     """Channels of the hidden 3x3 conv of each SALI sub-window branch."""
     sali_attention_hidden: int = 8
     """Hidden channels of SALI's attention over the estimates (twice their number as published)."""
+    sali_stride: int = 1
+    """Resolution step of SALI: 1 as published; ``s > 1`` folds each ``s x s`` patch of the
+    spike frames into channels (pixel unshuffle), so SALI's wide convs run at ``1/s`` of the size
+    and write the ``s * s`` pixels of each estimate as channels. Must divide ``feature_stride``."""
     channels: int = 64
     """Feature channels of the extractor, the alignment and the reliability masks' output."""
     residual_blocks: int = 10
@@ -156,6 +160,10 @@ class Spk2ImgNetConfig:
             raise ValueError(f"pyramid_levels must be >= 1, got {self.pyramid_levels}")
         if self.feature_stride < 1:
             raise ValueError(f"feature_stride must be >= 1, got {self.feature_stride}")
+        if self.sali_stride < 1 or self.feature_stride % self.sali_stride:
+            raise ValueError(
+                f"sali_stride={self.sali_stride} must divide feature_stride={self.feature_stride}"
+            )
         self.geometry  # noqa: B018 (checks that the blocks make a centred window)
 
     @property
@@ -202,6 +210,19 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         fusion_hidden=64,
         feature_stride=2,
     ),
+    "cpu": replace(
+        PAPER,
+        sali_hidden=16,
+        sali_attention_hidden=16,
+        sali_stride=4,
+        channels=32,
+        residual_blocks=4,
+        convs_per_block=2,
+        deformable_groups=2,
+        reliability_hidden=32,
+        fusion_hidden=64,
+        feature_stride=4,
+    ),
     "tiny": replace(
         PAPER,
         sali_hidden=8,
@@ -216,7 +237,9 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
 }
 """The named family members, largest first: ``paper`` (3.90 M parameters), ``small`` (0.49 M,
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
-after SALI: a quarter of ``small``'s cost), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
+after SALI: a quarter of ``small``'s cost), ``cpu`` (0.80 M, built for CPUs: SALI on 4x4 patches
+folded into channels, 32 channels at a quarter of the size after it; 12.9 G MACs, the least
+of all), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
 
 
 def get_config(name: str) -> Spk2ImgNetConfig:

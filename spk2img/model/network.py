@@ -14,7 +14,7 @@ from .alignment import FeaturePyramid, PCDAlignment
 from .config import Spk2ImgNetConfig, get_config
 from .features import FeatureExtractor
 from .fusion import ReliabilityFusion
-from .sali import LightInference
+from .sali import LightInference, fold, unfold
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
@@ -42,6 +42,7 @@ class Spk2ImgNet(nn.Module):
             config.sali_subwindows,
             config.sali_hidden,
             config.sali_attention_hidden,
+            config.sali_stride,
         )
         folded = len(config.sali_subwindows) * stride**2  # SALI's estimates, pixel-unshuffled
         self.features = FeatureExtractor(folded, c, config.residual_blocks, config.convs_per_block)
@@ -68,19 +69,21 @@ class Spk2ImgNet(nn.Module):
         cfg = self.config
         h, w = spikes.shape[-2:]
         key = cfg.num_blocks // 2
-        spikes = pad_to_multiple(spikes, cfg.size_multiple)  # (b, t, hp, wp)
+        s, pixels = cfg.sali_stride, cfg.sali_stride**2
+        spikes = fold(pad_to_multiple(spikes, cfg.size_multiple), s)  # (b, t * s * s, hp/s, wp/s)
 
-        # five 13-frame blocks at offsets 0, 7, 14, 21, 28, folded into the batch
+        # five 13-frame blocks at offsets 0, 7, 14, 21, 28 (each frame s * s channels),
+        # folded into the batch
         blocks = torch.stack(
             [
-                spikes[:, start : start + cfg.block_frames]
+                spikes[:, start * pixels : (start + cfg.block_frames) * pixels]
                 for start in range(0, cfg.num_blocks * cfg.block_stride, cfg.block_stride)
             ],
             dim=1,
-        ).flatten(0, 1)  # (b * blocks, block_frames, hp, wp)
+        ).flatten(0, 1)  # (b * blocks, block_frames * s * s, hp / s, wp / s)
 
         # SALI, features and pyramid, shared by the blocks
-        weighted, estimates = self.sali(blocks)  # (b * blocks, n, hp, wp) each
+        weighted, estimates = self.sali(blocks)  # (b * blocks, n * s * s, hp / s, wp / s) each
         pyramid = [
             level.unflatten(0, (-1, cfg.num_blocks)) for level in self.block_pyramid(weighted)
         ]  # (b, blocks, c, h_l, w_l) per level
@@ -96,19 +99,24 @@ class Spk2ImgNet(nn.Module):
         # reliability fusion -> 0.6 * I
         pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0])  # (b, 1, hp, wp)
         image = to_intensity(pred, h, w, self.training)
-        estimates = estimates.unflatten(0, (-1, cfg.num_blocks))[..., :h, :w] / SPIKE_RATE
+        estimates = unfold(estimates, cfg.sali_stride).unflatten(0, (-1, cfg.num_blocks))
+        estimates = estimates[..., :h, :w] / SPIKE_RATE
         return image, estimates
 
     def block_pyramid(self, weighted: torch.Tensor) -> list[torch.Tensor]:
-        """SALI's weighted estimates ``(b, n, hp, wp)`` -> the feature pyramid, level 1 first,
-        ``(b, c, hp / (s * 2**(l-1)), wp / (s * 2**(l-1)))`` with ``s`` the feature stride."""
-        folded = F.pixel_unshuffle(weighted, self.config.feature_stride)
-        return self.pyramid(self.features(folded))
+        """SALI's weighted estimates (folded by the SALI stride) -> the feature pyramid, level 1
+        first, ``(b, c, hp / (s * 2**(l-1)), wp / (s * 2**(l-1)))`` with ``s`` the feature
+        stride."""
+        cfg = self.config
+        step = cfg.feature_stride // cfg.sali_stride
+        if step > 1:  # refold at the feature stride: channels estimate-major as fold() gives
+            weighted = fold(unfold(weighted, cfg.sali_stride), cfg.feature_stride)
+        return self.pyramid(self.features(weighted))
 
     def fuse(self, aligned: list[torch.Tensor], key_feat: torch.Tensor) -> torch.Tensor:
         """The aligned neighbours (temporal order) and the key's level-1 features, each
         ``(b, c, h_f, w_f)`` -> the prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
-        return F.pixel_shuffle(self.fusion(aligned, key_feat), self.config.feature_stride)
+        return unfold(self.fusion(aligned, key_feat), self.config.feature_stride)
 
 
 def per_neighbour(tensor: torch.Tensor, neighbours: int) -> torch.Tensor:

@@ -3,7 +3,20 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import nn
+
+
+def fold(x: torch.Tensor, stride: int) -> torch.Tensor:
+    """``(b, c, h, w)`` -> ``(b, c * stride**2, h / stride, w / stride)`` (pixel unshuffle:
+    channel ``i * stride**2 + (y % stride) * stride + x % stride``); ``x`` itself for stride 1."""
+    return F.pixel_unshuffle(x, stride) if stride > 1 else x
+
+
+def unfold(x: torch.Tensor, stride: int) -> torch.Tensor:
+    """The inverse of :func:`fold`: ``(b, c * stride**2, h, w)`` -> ``(b, c, h * stride, w *
+    stride)``."""
+    return F.pixel_shuffle(x, stride) if stride > 1 else x
 
 
 class LightInference(nn.Module):
@@ -15,42 +28,59 @@ class LightInference(nn.Module):
     (conv3x3 ``n -> attention_hidden``, ReLU, conv3x3 ``-> n``, sigmoid) scales the ``n``
     estimates per pixel.
 
+    With ``stride`` ``s > 1`` it reads the block folded (:func:`fold`): every conv runs at
+    ``1/s`` of the size, a branch reads its sub-window's ``n * s * s`` channels and writes the
+    ``s * s`` pixels of its estimate, and the attention weighs all of them.
+
     Args:
         block_frames: frames of the input block.
         subwindows: lengths of the centred sub-windows, each ``<= block_frames``, same parity.
         hidden: hidden channels of each sub-window branch.
         attention_hidden: hidden channels of the attention.
+        stride: resolution step, the fold of the input (1 as published).
     """
 
     def __init__(
-        self, block_frames: int, subwindows: tuple[int, ...], hidden: int, attention_hidden: int
+        self,
+        block_frames: int,
+        subwindows: tuple[int, ...],
+        hidden: int,
+        attention_hidden: int,
+        stride: int = 1,
     ) -> None:
         super().__init__()
-        self.spans = [((block_frames - n) // 2, (block_frames + n) // 2) for n in subwindows]
+        self.stride = stride
+        pixels = stride**2  # channels per frame once folded
+        self.spans = [
+            ((block_frames - n) // 2 * pixels, (block_frames + n) // 2 * pixels)
+            for n in subwindows
+        ]
         self.branches = nn.ModuleList(
             nn.Sequential(
-                nn.Conv2d(n, hidden, 3, padding=1),
+                nn.Conv2d(n * pixels, hidden, 3, padding=1),
                 nn.ReLU(),
-                nn.Conv2d(hidden, 1, 3, padding=1),
+                nn.Conv2d(hidden, pixels, 3, padding=1),
             )
             for n in subwindows
         )
+        estimates = len(subwindows) * pixels
         self.attention = nn.Sequential(
-            nn.Conv2d(len(subwindows), attention_hidden, 3, padding=1),
+            nn.Conv2d(estimates, attention_hidden, 3, padding=1),
             nn.ReLU(),
-            nn.Conv2d(attention_hidden, len(subwindows), 3, padding=1),
+            nn.Conv2d(attention_hidden, estimates, 3, padding=1),
             nn.Sigmoid(),
         )
 
     def forward(self, block: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``block`` ``(b, block_frames, h, w)`` spikes -> ``(weighted, estimates)``, both
-        ``(b, n, h, w)``: the attention-scaled estimates (the feature extractor's input) and the
-        raw estimates of ``0.6 * I`` (what the intermediate loss sees)."""
+        """``block`` ``(b, block_frames * s * s, h / s, w / s)`` spikes (``(b, block_frames, h,
+        w)`` folded) -> ``(weighted, estimates)``, both ``(b, n * s * s, h / s, w / s)``
+        (``(b, n, h, w)`` folded): the attention-scaled estimates (the feature extractor's
+        input) and the raw estimates of ``0.6 * I`` (what the intermediate loss sees)."""
         estimates = torch.cat(
             [
                 branch(block[:, start:stop])
                 for branch, (start, stop) in zip(self.branches, self.spans, strict=True)
             ],
             dim=1,
-        )  # (b, n, h, w)
+        )  # (b, n * s * s, h / s, w / s)
         return self.attention(estimates) * estimates, estimates
