@@ -105,3 +105,16 @@ def test_the_torch_backend_runs_the_checkpoint_shipped_beside_the_named_model(
     both = ["--model", "real", "--checkpoint", str(tiny_checkpoint), "--backend", "torch"]
     assert main([*args, *both, "--no-progress"]) == 2
     assert "give a model or a checkpoint" in capsys.readouterr().err
+
+
+def test_models_piped_into_a_reader_that_left_ends_quietly():
+    """``spk2img models | head -1``: the reader leaves, the command stops without a traceback
+    (exit 141, as a shell's own tools end on a closed pipe)."""
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-c", "import sys; from spk2img.cli import main; sys.exit(main())"]
+    process = subprocess.Popen([*command, "models"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process.stdout.close()  # the reader leaves before anything is written
+    err = process.stderr.read().decode()
+    assert process.wait(timeout=120) == 141 and err == ""

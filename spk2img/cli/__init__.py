@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from spk2img import __version__
@@ -57,7 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
-        return int(args.run(args) or 0)
+        code = int(args.run(args) or 0)
+        sys.stdout.flush()  # a reader that left is found here, not at exit
+        return code
     except MissingExtra as exc:
         return _fail(args, str(exc), EXIT_MISSING_EXTRA)
     except (InputError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
@@ -70,6 +73,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("spk2img: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader left (`spk2img models | head`): stop quietly
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no error at exit
+        return 141
 
 
 def _fail(args: argparse.Namespace, message: str, code: int) -> int:
