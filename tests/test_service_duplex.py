@@ -88,15 +88,24 @@ def test_chunked_errors_before_the_first_frame_are_json(service):
 
 
 def test_limit_crossed_mid_stream_is_an_in_band_413(service):
-    """A client that sends its whole body before reading still gets every record: the server
-    reads the rest of the refused body before it closes (else the close resets the connection
-    and the reset drops what the client had not read yet)."""
+    """Frames out, then the upload crosses the frame limit: the stream ends with an ``ERRO``
+    413 after the frames (the server reads and drops the rest of the body still coming)."""
     _, long = stream_bytes(6000, 4, 4, seed=2)  # 2 bytes a frame; the limit is 2000 frames
     target = "/v1/reconstruct?height=4&width=4&stride=50&method=tfp"
-    chunks = [long[i : i + 512] for i in range(0, len(long), 512)]
-    status, _, body = post_chunks(service.port, target, chunks, pause=0.01)
+    client = DuplexClient(service.port)
+    try:
+        client.start(target)
+        client.send(long[:200])  # 100 frames: the first frame's window is in
+        assert client.read_head().status_code == 200
+        first = client.read_some()  # a whole piece has come back before the rest is sent
+        sender = client.send_in_background(long[200:])
+        body = first + client.read_all()
+        sender.join(30)
+    finally:
+        client.close()
     frames, last = parse_frames(body)
-    assert status == 200 and len(frames) > 0
+    centers = [f.center for f in frames]
+    assert centers == list(range(20, 50 * len(frames), 50))  # at least the first: 20
     assert isinstance(last, ErrorRecord) and last.status == 413 and "2000 frames" in last.detail
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.scoring import score_images
+from spk2img.model.config import MEMBERS
 
 from . import artifacts, gpu
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
@@ -61,7 +62,7 @@ FULL = Scale(
     *REFERENCE_SIZE,
     per_class=4,
     repeats=5,
-    members=("paper", "small", "lite", "tiny"),
+    members=tuple(MEMBERS),
     service_requests=24,
     stream_frames=1000,
 )

@@ -52,8 +52,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 3)")
     p.add_argument(
         "--members",
-        help="family members with random weights (default paper,small,lite,tiny; --quick: tiny; "
-        "'' for none)",
+        help="family members with random weights (default: every member, paper,small,lite,cpu,"
+        "tiny; --quick: tiny; '' for none)",
     )
     p.add_argument(
         "--trained",

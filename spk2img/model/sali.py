@@ -52,8 +52,7 @@ class LightInference(nn.Module):
         self.stride = stride
         pixels = stride**2  # channels per frame once folded
         self.spans = [
-            ((block_frames - n) // 2 * pixels, (block_frames + n) // 2 * pixels)
-            for n in subwindows
+            ((block_frames - n) // 2 * pixels, (block_frames + n) // 2 * pixels) for n in subwindows
         ]
         self.branches = nn.ModuleList(
             nn.Sequential(
