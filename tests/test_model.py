@@ -23,7 +23,7 @@ from spk2img.model.checkpoint import (
 from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
-from spk2img.model.network import build_model
+from spk2img.model.network import build_model, pad_to_multiple
 from spk2img.model.sali import LightInference, fold, unfold
 
 torch.set_num_threads(1)
@@ -215,17 +215,25 @@ def test_folded_sali_estimates_stay_at_their_pixels():
 
 
 def test_the_cpu_member_reads_each_block_of_the_window_folded():
-    """``cpu`` slices its five blocks out of the folded window: its SALI estimates (averaging
-    weights) are each block's sub-window means, at every pixel of an odd-sized window."""
+    """``cpu`` slices its five blocks out of the folded window (2x2 patches) and refolds
+    SALI's output at its feature stride (4x4): its estimates (averaging weights) are each
+    block's sub-window means at every pixel of an odd-sized window, and its features see the
+    averages where a stride-1 SALI would put them."""
     model = build_model("cpu").eval()
-    model.sali = _averaging_sali(4)
+    cfg = model.config
+    model.sali = _averaging_sali(cfg.sali_stride)
+    seen = []  # the feature extractor's input
+    model.features.register_forward_pre_hook(lambda module, args: seen.append(args[0]))
     spikes = (torch.rand(1, 41, 21, 35, generator=torch.Generator().manual_seed(3)) < 0.3).float()
     with torch.no_grad():
         _, estimates = model(spikes)  # (1, 5, 4, 21, 35), divided by 0.6
+    padded = pad_to_multiple(spikes, cfg.size_multiple)[0]  # (41, 32, 48)
+    spans = [(0, 13), (1, 12), (2, 11), (3, 10)]
     for block, start in enumerate((0, 7, 14, 21, 28)):
-        for index, (a, b) in enumerate([(0, 13), (1, 12), (2, 11), (3, 10)]):
-            mean = spikes[0, start + a : start + b].mean(0)
-            torch.testing.assert_close(estimates[0, block, index] * 0.6, mean)
+        means = torch.stack([padded[start + a : start + b].mean(0) for a, b in spans])
+        torch.testing.assert_close(estimates[0, block] * 0.6, means[:, :21, :35])
+        weighted = fold(means[None] / 2, cfg.feature_stride)[0]  # as from a stride-1 SALI
+        torch.testing.assert_close(seen[0][block], weighted)
 
 
 def test_paper_forward_on_a_small_window():

@@ -212,9 +212,7 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
     ),
     "cpu": replace(
         PAPER,
-        sali_hidden=16,
-        sali_attention_hidden=16,
-        sali_stride=4,
+        sali_stride=2,
         channels=32,
         residual_blocks=4,
         convs_per_block=2,
@@ -237,8 +235,8 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
 }
 """The named family members, largest first: ``paper`` (3.90 M parameters), ``small`` (0.49 M,
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
-after SALI: a quarter of ``small``'s cost), ``cpu`` (0.80 M, built for CPUs: SALI on 4x4 patches
-folded into channels, 32 channels at a quarter of the size after it; 12.9 G MACs, the least
+after SALI: a quarter of ``small``'s cost), ``cpu`` (0.70 M, built for CPUs: SALI on 2x2 patches
+folded into channels, 32 channels at a quarter of the size after it; 12.6 G MACs, the least
 of all), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
 
 
