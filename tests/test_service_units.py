@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import threading
 import typing
+import warnings
 from pathlib import Path
 
 import httpx
@@ -20,6 +22,7 @@ from spk2img.model.config import PUBLISHED_GEOMETRY
 from spk2img.runtime.loader import LoadedNetwork
 from spk2img.runtime.methods import method_plan
 from spk2img.service.app import create_app
+from spk2img.service.duplex import ClientGone, _Upload
 from spk2img.service.inference import InferencePool
 from spk2img.service.reconstruction import Cancelled, StreamJob
 from spk2img.service.schemas import ReconstructQuery
@@ -194,3 +197,24 @@ def test_a_cancelled_job_stops():
     job.cancel()
     with pytest.raises(Cancelled):
         job.advance()
+
+
+def test_a_read_after_the_client_left_is_refused_without_a_dangling_coroutine():
+    """The upload asked for its next piece after the client has gone raises ``ClientGone`` and
+    leaves no coroutine that was never awaited (the log's "coroutine 'Queue.get' was never
+    awaited" under resets)."""
+
+    async def scenario():
+        messages = asyncio.Queue()
+        messages.put_nowait({"type": "http.disconnect"})
+        upload = _Upload(messages.get, 1.0, 0, lambda: None, 1024)
+        await asyncio.sleep(0)  # the reader task sees the disconnect
+        await asyncio.sleep(0)
+        with pytest.raises(ClientGone):
+            await upload.next()
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        asyncio.run(scenario())
+        gc.collect()
+    assert not [w for w in seen if "never awaited" in str(w.message)]
