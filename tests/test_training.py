@@ -1,3 +1,4 @@
+import dataclasses
 import json
 import os
 import subprocess
@@ -10,14 +11,15 @@ from PIL import Image
 
 from spk2img.cli import main
 from spk2img.errors import InputError
-from spk2img.model.checkpoint import load_checkpoint, load_model, save_checkpoint
-from spk2img.model.config import PUBLISHED_GEOMETRY
+from spk2img.model.checkpoint import config_to_dict, load_checkpoint, load_model, save_checkpoint
+from spk2img.model.config import PUBLISHED_GEOMETRY, get_config
+from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.sim.simulator import SensorConfig
 from spk2img.sim.sources import load_photo
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_loss
 from spk2img.training.synthesis import batch_generator, film_plans
-from spk2img.training.train import TrainConfig, learning_rate, train
+from spk2img.training.train import TrainConfig, learning_rate, load_initial_weights, train
 
 TINY_RUN = dict(
     member="tiny",
@@ -190,6 +192,29 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
     (corrupt_run / "last.pt").write_bytes((source / "last.pt").read_bytes()[:1000])
     with pytest.raises(InputError, match="last.pt: not a spk2img training checkpoint"):
         train(TrainConfig(steps=1, **TINY_RUN | {"run_dir": str(corrupt_run)}))
+
+
+def test_init_grows_a_member_by_its_detail_refinement(tmp_path):
+    """A ``cpu`` checkpoint from before the member had its detail refinement starts a run of
+    ``cpu``: every weight it holds is loaded and the refinement starts at zero, so the grown
+    network computes what the checkpoint's did; weights that do not fit are refused."""
+    plain_config = dataclasses.replace(get_config("cpu"), detail_hidden=0)
+    torch.manual_seed(0)
+    plain = Spk2ImgNet(plain_config).eval()
+    save_checkpoint(
+        tmp_path / "plain.pt", model=plain.state_dict(), config=config_to_dict(plain_config)
+    )
+    grown = build_model("cpu").eval()
+    assert grown.detail is not None and plain.detail is None
+    load_initial_weights(grown, str(tmp_path / "plain.pt"))
+    spikes = (torch.rand(2, 41, 20, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
+    with torch.no_grad():
+        torch.testing.assert_close(grown(spikes)[0], plain(spikes)[0])
+    weights = plain.state_dict()
+    del weights["fusion.reconstruct.0.bias"]
+    save_checkpoint(tmp_path / "cut.pt", model=weights, config=config_to_dict(plain_config))
+    with pytest.raises(InputError, match="do not fit"):
+        load_initial_weights(build_model("cpu"), str(tmp_path / "cut.pt"))
 
 
 def test_validation_logs_network_and_baselines(tmp_path):

@@ -33,8 +33,14 @@ import numpy as np
 import torch
 from torch.export import Dim
 
-from spk2img.model.block_code import code_names
-from spk2img.model.block_split import AlignFuseHead, BlockEncoder, repeated_code, role_blocks
+from spk2img.model.block_code import DETAIL_CODE, code_role
+from spk2img.model.block_split import (
+    AlignFuseHead,
+    BlockEncoder,
+    model_code_names,
+    repeated_code,
+    role_blocks,
+)
 from spk2img.model.network import Spk2ImgNet
 from spk2img.runtime.block_codec import OnnxBlockCodec, block_graph_paths
 from spk2img.runtime.block_stream import BlockReuseStream
@@ -63,14 +69,21 @@ def export_block_graphs(
     model = source.model.eval()
     cfg = model.config
     levels = cfg.pyramid_levels
-    names = code_names(levels)
+    names = model_code_names(model)
     stacked = role_blocks(cfg.num_blocks)  # blocks each role stacks in the head's inputs
-    roles = [name.split("_")[0] for name in names]
+    roles = [code_role(name) for name in names]
     paths = block_graph_paths(out)
-    # (batch, c, h_l, w_l) dims of each code, named after its level
-    code_dims = {
-        name: ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"] for name in names
-    }
+    # (batch, channels, height, width) of each code, and how many times the coarsest level's
+    # size its own size is
+    code_dims, scales = {}, {}
+    for name, role in zip(names, roles, strict=True):
+        if role == DETAIL_CODE:  # the SALI estimates, at the SALI stride
+            estimates = len(cfg.sali_subwindows) * cfg.sali_stride**2
+            code_dims[name] = ["batch", estimates, "h_sali", "w_sali"]
+            scales[name] = cfg.size_multiple // cfg.sali_stride
+        else:  # level l is 2**(L-l) times the coarsest
+            code_dims[name] = ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"]
+            scales[name] = 2 ** (levels - int(name[-1]))
 
     block = torch.zeros(
         config.example_batch, cfg.block_frames, *example_size(config, cfg.size_multiple)
@@ -83,14 +96,15 @@ def export_block_graphs(
     encoder_meta = {**source.metadata, "part": "encoder"}
     finish_graph(encoder, encoder_meta, config, paths["encoder"], encoder_expected)
 
-    # the head takes every block's pyramid, the neighbours' terms and the key's terms
+    # the head takes every block's pyramid, the neighbours' terms and the key's terms (and SALI
+    # estimates)
     with torch.no_grad():
-        examples = repeated_code(BlockEncoder(model)(block), cfg.num_blocks)
+        examples = repeated_code(BlockEncoder(model)(block), names, cfg.num_blocks)
     batch, coarse_h, coarse_w = Dim("batch"), Dim("coarse_height"), Dim("coarse_width")
     shapes = []
     for name, role in zip(names, roles, strict=True):
-        scale = 2 ** (levels - int(name[-1]))  # level l is 2**(L-l) times the coarsest
         first = 2 if stacked[role] is None else 3  # the spatial axes
+        scale = scales[name]
         shapes.append({0: batch, first: scale * coarse_h, first + 1: scale * coarse_w})
     head_io = GraphIO(names, [IMAGE_OUTPUT], (tuple(shapes),))
     head = trace_to_onnx(AlignFuseHead(model), examples, head_io, config)

@@ -27,6 +27,7 @@ from spk2img.errors import InputError
 from spk2img.model.checkpoint import read_network
 from spk2img.model.config import MEMBERS, Spk2ImgNetConfig
 from spk2img.model.deform_conv import ModulatedDeformConv2d
+from spk2img.model.detail import DetailRefinement
 from spk2img.model.network import Spk2ImgNet, build_model
 
 from .deform_conv_graph import (
@@ -115,7 +116,8 @@ def random_source(
     including the offset/mask predictors of the deformable convs (which training starts at
     zero), scaled by :data:`RANDOM_OFFSET_GAIN`: the random network's offsets are then a few
     pixels, fractional and spatially varying, and its masks spread over (0, 1), so the exported
-    graph's deformable sampling is really exercised (borders included).
+    graph's deformable sampling is really exercised (borders included). The detail
+    refinement's last conv (also zero at the start of training) is random too.
     """
     if isinstance(member, str) and member not in MEMBERS:
         raise InputError(f"unknown member {member!r}; choose one of {', '.join(MEMBERS)}")
@@ -129,6 +131,8 @@ def random_source(
                 with torch.no_grad():
                     module.conv_offset_mask.weight.mul_(RANDOM_OFFSET_GAIN)
                     module.conv_offset_mask.bias.mul_(RANDOM_OFFSET_GAIN)
+            elif isinstance(module, DetailRefinement):
+                module.body[-1].reset_parameters()
     finally:
         torch.random.set_rng_state(generator_state)
     source = f"random weights, seed {seed}"

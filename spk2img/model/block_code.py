@@ -7,9 +7,21 @@ Pure Python (no torch), so that the runtime's ONNX block codec and the network's
 from __future__ import annotations
 
 CODE_ROLES = ("feat", "nbr", "key")
-"""A block code's parts: feature pyramid, offset-conv terms as a neighbour and as the key."""
+"""A block code's parts per pyramid level: feature pyramid, offset-conv terms as a neighbour and
+as the key."""
+
+DETAIL_CODE = "sali"
+"""The code's last part in members with a detail refinement: the block's weighted SALI
+estimates, which the head reads from every block."""
 
 
-def code_names(levels: int) -> list[str]:
-    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``."""
-    return [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
+def code_names(levels: int, detail: bool = False) -> list[str]:
+    """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``,
+    then ``sali`` where the member has a detail refinement (``detail``)."""
+    names = [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
+    return names + [DETAIL_CODE] if detail else names
+
+
+def code_role(name: str) -> str:
+    """The role of a code array (``feat``, ``nbr``, ``key`` or ``sali``) from its name."""
+    return name.split("_")[0]

@@ -12,7 +12,9 @@ the feature stride, each further level half the one before):
 - ``nbr_l{l}``, ``key_l{l}`` ``(b, c, h_l, w_l)``: its terms of level ``l``'s first offset conv
   as a neighbour and as the key. That conv is linear in ``[neighbour, key]``, so its output on a
   pair is the neighbour's term plus the key's, and each block's terms are computed once, for
-  whichever pairs it takes part in.
+  whichever pairs it takes part in;
+- ``sali`` ``(b, n * r * r, hp / r, wp / r)``, only in members with a detail refinement: its
+  weighted SALI estimates (``r`` the SALI stride).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .alignment import PCDAlignment
-from .block_code import CODE_ROLES
+from .block_code import code_names, code_role
 from .network import Spk2ImgNet, pad_to_multiple, per_neighbour, to_intensity, without_key
 from .sali import fold
 
@@ -49,15 +51,21 @@ def key_terms(align: PCDAlignment, pyramid: list[torch.Tensor]) -> list[torch.Te
 
 
 def role_blocks(num_blocks: int) -> dict[str, int | None]:
-    """Blocks each code role stacks in the head's inputs (None: a single block, no axis)."""
-    return {"feat": num_blocks, "nbr": num_blocks - 1, "key": None}
+    """Blocks each code role stacks in the head's inputs (None: the key block's only, no axis)."""
+    return {"feat": num_blocks, "nbr": num_blocks - 1, "key": None, "sali": num_blocks}
 
 
-def repeated_code(codes: tuple[torch.Tensor, ...], num_blocks: int) -> tuple[torch.Tensor, ...]:
-    """One block's code as a whole window's head inputs (every block the same): the example
-    inputs of tracing and of counting the head's cost."""
-    levels = len(codes) // len(CODE_ROLES)
-    stacks = [role_blocks(num_blocks)[role] for role in CODE_ROLES for _ in range(levels)]
+def model_code_names(model: Spk2ImgNet) -> list[str]:
+    """The names of ``model``'s block code, in the order the encoder returns it."""
+    return code_names(model.config.pyramid_levels, model.detail is not None)
+
+
+def repeated_code(
+    codes: tuple[torch.Tensor, ...], names: list[str], num_blocks: int
+) -> tuple[torch.Tensor, ...]:
+    """One block's code (named ``names``) as a whole window's head inputs (every block the
+    same): the example inputs of tracing and of counting the head's cost."""
+    stacks = [role_blocks(num_blocks)[code_role(name)] for name in names]
     return tuple(
         code if n is None else code.unsqueeze(1).expand(-1, n, *code.shape[1:])
         for code, n in zip(codes, stacks, strict=True)
@@ -78,7 +86,13 @@ class BlockEncoder(nn.Module):
         cfg = net.config
         weighted, _ = net.sali(fold(pad_to_multiple(block, cfg.size_multiple), cfg.sali_stride))
         pyramid = net.block_pyramid(weighted)
-        return (*pyramid, *neighbour_terms(net.align, pyramid), *key_terms(net.align, pyramid))
+        detail = () if net.detail is None else (weighted,)
+        return (
+            *pyramid,
+            *neighbour_terms(net.align, pyramid),
+            *key_terms(net.align, pyramid),
+            *detail,
+        )
 
 
 class AlignFuseHead(nn.Module):
@@ -86,8 +100,9 @@ class AlignFuseHead(nn.Module):
 
     Inputs in the order of :func:`~spk2img.model.block_code.code_names`: ``feat_l*``
     ``(b, blocks, c, h_l, w_l)`` (every block in temporal order), ``nbr_l*``
-    ``(b, blocks - 1, c, h_l, w_l)`` (the neighbours in order) and ``key_l*``
-    ``(b, c, h_l, w_l)`` (the key block's).
+    ``(b, blocks - 1, c, h_l, w_l)`` (the neighbours in order), ``key_l*``
+    ``(b, c, h_l, w_l)`` (the key block's) and, with a detail refinement, every block's
+    ``sali`` ``(b, blocks, n * r * r, hp / r, wp / r)``.
     """
 
     def __init__(self, model: Spk2ImgNet) -> None:
@@ -98,8 +113,9 @@ class AlignFuseHead(nn.Module):
         net, cfg = self.model, self.model.config
         levels, key, neighbours = cfg.pyramid_levels, cfg.num_blocks // 2, cfg.num_blocks - 1
         pyramid, nbr_terms, key_terms_ = (
-            list(codes[i * levels : (i + 1) * levels]) for i in range(len(CODE_ROLES))
+            list(codes[i * levels : (i + 1) * levels]) for i in range(3)
         )
+        weighted = codes[3 * levels] if net.detail is not None else None
         key_feat = pyramid[0][:, key]  # (b, c, h_f, w_f)
         aligned = net.align.align_levels(
             [without_key(level, key).flatten(0, 1) for level in pyramid],
@@ -109,5 +125,5 @@ class AlignFuseHead(nn.Module):
             ],
             per_neighbour(key_feat, neighbours),
         ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
-        pred = net.fuse(list(aligned.unbind(1)), key_feat)
+        pred = net.fuse(list(aligned.unbind(1)), key_feat, weighted)
         return to_intensity(pred, pred.shape[-2], pred.shape[-1], training=False)

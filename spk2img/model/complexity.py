@@ -15,7 +15,7 @@ import torch
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
-from .block_split import AlignFuseHead, BlockEncoder, repeated_code
+from .block_split import AlignFuseHead, BlockEncoder, model_code_names, repeated_code
 from .config import Spk2ImgNetConfig
 from .network import Spk2ImgNet
 
@@ -48,7 +48,7 @@ def count_stream_macs(
         block = torch.zeros(1, config.block_frames, height, width)
     codes: list[torch.Tensor] = []
     encoder = _macs(lambda: codes.extend(BlockEncoder(model)(block)))
-    inputs = repeated_code(tuple(codes), config.num_blocks)
+    inputs = repeated_code(tuple(codes), model_code_names(model), config.num_blocks)
     head = _macs(lambda: AlignFuseHead(model)(*inputs))
     return encoder, head
 

@@ -142,6 +142,10 @@ class Spk2ImgNetConfig:
     full size); ``s > 1`` folds each ``s x s`` patch of SALI's estimates into channels (pixel
     unshuffle), runs everything after SALI at ``1/s`` of the size and unfolds the fusion's
     ``s * s`` output channels into the full-size image (pixel shuffle)."""
+    detail_hidden: int = 0
+    """Hidden channels of the detail refinement (not in the paper; 0: none, as published): after
+    a reduced-size fusion, two 3x3 convs at SALI's resolution step add detail from every block's
+    SALI estimates to the image (:mod:`spk2img.model.detail`)."""
 
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
@@ -160,6 +164,8 @@ class Spk2ImgNetConfig:
             raise ValueError(f"pyramid_levels must be >= 1, got {self.pyramid_levels}")
         if self.feature_stride < 1:
             raise ValueError(f"feature_stride must be >= 1, got {self.feature_stride}")
+        if self.detail_hidden < 0:
+            raise ValueError(f"detail_hidden must be >= 0, got {self.detail_hidden}")
         if self.sali_stride < 1 or self.feature_stride % self.sali_stride:
             raise ValueError(
                 f"sali_stride={self.sali_stride} must divide feature_stride={self.feature_stride}"
@@ -220,6 +226,7 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         reliability_hidden=32,
         fusion_hidden=64,
         feature_stride=4,
+        detail_hidden=24,
     ),
     "tiny": replace(
         PAPER,

@@ -12,6 +12,7 @@ from spk2img.io.light import SPIKE_RATE
 
 from .alignment import FeaturePyramid, PCDAlignment
 from .config import Spk2ImgNetConfig, get_config
+from .detail import DetailRefinement
 from .features import FeatureExtractor
 from .fusion import ReliabilityFusion
 from .sali import LightInference, fold, unfold
@@ -50,6 +51,15 @@ class Spk2ImgNet(nn.Module):
         self.align = PCDAlignment(c, config.pyramid_levels, config.deformable_groups)
         self.fusion = ReliabilityFusion(
             c, config.num_blocks, config.reliability_hidden, config.fusion_hidden, stride**2
+        )
+        self.detail = (
+            DetailRefinement(
+                config.num_blocks * len(config.sali_subwindows) * config.sali_stride**2,
+                config.detail_hidden,
+                config.sali_stride,
+            )
+            if config.detail_hidden
+            else None
         )
 
     def forward(self, spikes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -96,8 +106,9 @@ class Spk2ImgNet(nn.Module):
             [per_neighbour(level, neighbours) for level in key_pyramid],
         ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
 
-        # reliability fusion -> 0.6 * I
-        pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0])  # (b, 1, hp, wp)
+        # reliability fusion (and the detail of SALI's estimates) -> 0.6 * I
+        weighted = weighted.unflatten(0, (-1, cfg.num_blocks))  # (b, blocks, n * s * s, ...)
+        pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0], weighted)  # (b, 1, hp, wp)
         image = to_intensity(pred, h, w, self.training)
         estimates = unfold(estimates, cfg.sali_stride).unflatten(0, (-1, cfg.num_blocks))
         estimates = estimates[..., :h, :w] / SPIKE_RATE
@@ -113,10 +124,18 @@ class Spk2ImgNet(nn.Module):
             weighted = fold(unfold(weighted, cfg.sali_stride), cfg.feature_stride)
         return self.pyramid(self.features(weighted))
 
-    def fuse(self, aligned: list[torch.Tensor], key_feat: torch.Tensor) -> torch.Tensor:
+    def fuse(
+        self,
+        aligned: list[torch.Tensor],
+        key_feat: torch.Tensor,
+        weighted: torch.Tensor | None,
+    ) -> torch.Tensor:
         """The aligned neighbours (temporal order) and the key's level-1 features, each
-        ``(b, c, h_f, w_f)`` -> the prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
-        return unfold(self.fusion(aligned, key_feat), self.config.feature_stride)
+        ``(b, c, h_f, w_f)``, and every block's weighted SALI estimates ``(b, blocks, n * s * s,
+        hp / s, wp / s)`` (read only by the detail refinement; may be None without one) -> the
+        prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
+        pred = unfold(self.fusion(aligned, key_feat), self.config.feature_stride)
+        return pred if self.detail is None else self.detail(pred, weighted)
 
 
 def per_neighbour(tensor: torch.Tensor, neighbours: int) -> torch.Tensor:

@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from spk2img.errors import InputError
-from spk2img.model.block_code import code_names
+from spk2img.model.block_code import code_names, code_role
 from spk2img.model.config import Geometry
 from spk2img.runtime.onnx_backend import create_session, model_path, run_session
 
@@ -88,7 +88,10 @@ class OnnxBlockCodec:
             )
         self.metadata = meta[0]
         self.geometry = Geometry.from_metadata(self.metadata)
-        self.names = code_names(int(json.loads(self.metadata["config"])["pyramid_levels"]))
+        config = json.loads(self.metadata["config"])
+        self.names = code_names(
+            int(config["pyramid_levels"]), int(config.get("detail_hidden", 0)) > 0
+        )
 
     def encode(self, block: np.ndarray) -> BlockCode:
         feeds = {"block": np.ascontiguousarray(block[None], np.float32)}
@@ -102,17 +105,17 @@ class OnnxBlockCodec:
 
 
 def head_inputs(codes: Sequence[BlockCode], names: list[str], num_blocks: int) -> dict:
-    """The head's inputs from a window's block codes: every block's ``feat_l*`` stacked
-    ``(1, blocks, c, h, w)``, the neighbours' ``nbr_l*`` ``(1, blocks - 1, ...)``, the key's
-    ``key_l*`` ``(1, c, h, w)``."""
+    """The head's inputs from a window's block codes: every block's ``feat_l*`` (and ``sali``,
+    where the code has one) stacked ``(1, blocks, c, h, w)``, the neighbours' ``nbr_l*``
+    ``(1, blocks - 1, ...)``, the key's ``key_l*`` ``(1, c, h, w)``."""
     if len(codes) != num_blocks:
         raise ValueError(f"the head takes {num_blocks} block codes, got {len(codes)}")
     key = num_blocks // 2
     neighbours = [code for i, code in enumerate(codes) if i != key]
     feeds = {}
     for index, name in enumerate(names):
-        role = name.split("_")[0]
-        if role == "feat":
+        role = code_role(name)
+        if role in ("feat", "sali"):
             feeds[name] = np.stack([code[index] for code in codes])[None]
         elif role == "nbr":
             feeds[name] = np.stack([code[index] for code in neighbours])[None]

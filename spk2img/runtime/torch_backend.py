@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from spk2img.model.block_code import code_names
-from spk2img.model.block_split import AlignFuseHead, BlockEncoder
+from spk2img.model.block_split import AlignFuseHead, BlockEncoder, model_code_names
 from spk2img.model.checkpoint import load_model
 from spk2img.runtime.block_codec import head_inputs
 
@@ -45,7 +44,7 @@ class TorchPredictor:
     @torch.inference_mode()
     def head(self, codes, height: int, width: int) -> np.ndarray:
         """A window's block codes in temporal order -> ``(height, width)`` linear intensity."""
-        names = code_names(self.model.config.pyramid_levels)
+        names = model_code_names(self.model)
         inputs = head_inputs(codes, names, self.geometry.num_blocks)
         image = self.head_module(*(torch.from_numpy(inputs[name]) for name in names))
         return image[0, 0, :height, :width].numpy()

@@ -299,9 +299,16 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
     """Load the weights of checkpoint ``path`` into ``model`` (same shape) and return where
     they came from: the path, and the step, wall time, member and commit that trained them."""
     state = load_checkpoint(path)
-    if stored_config(state, path) != model.config:
+    stored = stored_config(state, path)
+    if stored == model.config:
+        load_weights(model, state, path)
+    elif stored == dataclasses.replace(model.config, detail_hidden=0):
+        # the member grown by the detail refinement: that module starts where it adds nothing
+        missing, unexpected = model.load_state_dict(state["model"], strict=False)
+        if unexpected or any(not key.startswith("detail.") for key in missing):
+            raise InputError(f"--init {path}: its weights do not fit the member being trained")
+    else:
         raise InputError(f"--init {path}: another shape than the member being trained")
-    load_weights(model, state, path)
     return {
         "path": str(path),
         "member": state.get("member"),
