@@ -138,6 +138,11 @@ class Reconstructor:
             window spans ``F * binning`` frames (plus one when even) and a dim pixel fires as
             often per network frame as a bright one; trades time resolution for noise. 1 (the
             default) merges none; :func:`suggest_binning` picks one from a stream's firing rate.
+
+    On the CPU the network keeps onnxruntime's memory arena: a stream's runs are of one frame
+    size, so the arena saves allocating their buffers anew (8–21 % of a frame's time) and holds
+    what one run needs anyway; a reconstructor used on ever larger frames keeps the largest's
+    memory until it is deleted.
     """
 
     def __init__(
@@ -171,6 +176,7 @@ class Reconstructor:
                 threads=threads,
                 block_reuse=block_reuse,
                 batch=batch,
+                memory_arena=True,
             )
         self.window = method_window(method, window, binning, quality, self.geometry)
         """Stream frames one reconstruction needs."""

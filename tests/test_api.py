@@ -13,6 +13,7 @@ import pytest
 import spk2img
 from spk2img.cli import main
 from spk2img.errors import InputError
+from spk2img.runtime.loader import load_network
 from spk2img.runtime.onnx_backend import default_model_path
 
 H, W = 24, 32
@@ -85,6 +86,27 @@ def test_one_reconstructor_many_streams():
     assert recon.last_stream is not None and b.centers.tolist() == [20, 34]
     np.testing.assert_array_equal(a.frames, spk2img.reconstruct(first, stride=14, threads=1)[0])
     np.testing.assert_array_equal(b.frames, spk2img.reconstruct(second, stride=14, threads=1)[0])
+
+
+def test_a_reconstructor_keeps_the_memory_arena_and_a_served_network_does_not():
+    """The API's (and CLI's) sessions keep onnxruntime's CPU memory arena, faster for a stream
+    of one size; the service's default load does not (a large request must not pin its
+    memory); both give the same frames."""
+    recon = spk2img.Reconstructor("net", model="tiny", threads=1)
+    served = load_network("tiny", threads=1, warm_up=False)
+    sessions = {
+        "reconstructor": [recon.network.predict.session]
+        + [part.session for part in recon.network.codec.parts.values()],
+        "served": [served.predict.session]
+        + [part.session for part in served.codec.parts.values()],
+    }
+    arenas = {
+        name: {s.get_session_options().enable_cpu_mem_arena for s in group}
+        for name, group in sessions.items()
+    }
+    assert arenas == {"reconstructor": {True}, "served": {False}}
+    windows = _stream(41, seed=3)[None].astype(np.float32)
+    np.testing.assert_array_equal(recon.network.predict(windows), served.predict(windows))
 
 
 @pytest.mark.parametrize(

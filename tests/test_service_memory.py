@@ -13,7 +13,8 @@ from service_support import OCTET, run_server, stream_bytes
 
 import spk2img
 from spk2img.model.config import get_config
-from spk2img.service.memory import budget_problem, container_limit_bytes, release_free_memory
+from spk2img.runtime.allocator import release_free_memory
+from spk2img.service.memory import budget_problem, container_limit_bytes
 from spk2img.service.reconstruction import NET_BYTES_PER_PIXEL
 
 SHAPES = [(1, 8000), (2, 4000), (8000, 1), (90, 90)]

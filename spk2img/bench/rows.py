@@ -104,6 +104,7 @@ class NetRow:
             threads=threads,
             block_reuse=False,
             warm_up=False,  # the bench's own warm-up calls are timed apart
+            memory_arena=True,  # as spk2img.Reconstructor (and the CLI) runs it
         )
         score = network_scorer(network.predict)
         return lambda spikes: score(spikes, None)

@@ -111,6 +111,7 @@ def measure_stream(spec: dict) -> dict:
         threads=threads,
         block_reuse=spec["mode"] == "reuse",
         warm_up=False,
+        memory_arena=True,  # as spk2img.Reconstructor (and the CLI) runs it
     )
     network.warm_up(height, width)
     geometry = network.geometry

@@ -58,6 +58,8 @@ class OnnxBlockCodec:
         threads: onnxruntime intra-op threads of each session (None: onnxruntime's default).
         device: where both graphs run (:data:`~spk2img.runtime.onnx_backend.DEVICES`).
         io_binding: run through onnxruntime's IO binding (default: on a GPU).
+        memory_arena: keep onnxruntime's CPU memory arena in both sessions
+            (:func:`~spk2img.runtime.onnx_backend.session_options`).
 
     Raises :class:`InputError` when a part is missing or the parts hold other weights than
     each other (their ``weights_sha256`` metadata differ).
@@ -69,12 +71,14 @@ class OnnxBlockCodec:
         threads: int | None = None,
         device: str = "cpu",
         io_binding: bool | None = None,
+        memory_arena: bool = False,
     ):
         paths = block_graph_paths(model_path(model))
-        self.parts = {"encoder": create_session(paths["encoder"], threads, device)}
+        arena = {"memory_arena": memory_arena}
+        self.parts = {"encoder": create_session(paths["encoder"], threads, device, **arena)}
         self.device = self.parts["encoder"].device
         """The concrete device both graphs run on."""
-        self.parts["head"] = create_session(paths["head"], threads, self.device)
+        self.parts["head"] = create_session(paths["head"], threads, self.device, **arena)
         self.encoder = self.parts["encoder"].session
         self.head_session = self.parts["head"].session
         self.image_name = self.head_session.get_outputs()[0].name

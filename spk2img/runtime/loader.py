@@ -87,6 +87,7 @@ def load_network(
     block_reuse: bool = True,
     batch: int = 1,
     warm_up: bool = True,
+    memory_arena: bool = False,
 ) -> LoadedNetwork:
     """Load a network ready to reconstruct.
 
@@ -101,6 +102,9 @@ def load_network(
             when there; the torch network itself), so streams encode each block once.
         batch: windows per call when windows run whole.
         warm_up: run :meth:`LoadedNetwork.warm_up` before returning.
+        memory_arena: for ``onnx``: keep onnxruntime's CPU memory arena, faster for a stream of
+            one frame size, holding its largest run's memory for good
+            (:func:`~spk2img.runtime.onnx_backend.session_options`).
 
     Raises:
         InputError: an unknown backend, a missing model, a device that cannot run here.
@@ -117,7 +121,7 @@ def load_network(
         if backend == "torch":
             network = _torch_network(model, checkpoint, threads, block_reuse, batch)
         else:
-            network = _onnx_network(model, device, threads, block_reuse, batch)
+            network = _onnx_network(model, device, threads, block_reuse, batch, memory_arena)
     except ModuleNotFoundError as exc:  # the same words as the CLI's (spk2img.cli.extras)
         raise ModuleNotFoundError(
             f"method 'net' with backend {backend!r} needs the {extra} extra (not installed: "
@@ -130,14 +134,18 @@ def load_network(
     return network
 
 
-def _onnx_network(model, device: str, threads, block_reuse: bool, batch: int) -> LoadedNetwork:
+def _onnx_network(
+    model, device: str, threads, block_reuse: bool, batch: int, memory_arena: bool
+) -> LoadedNetwork:
     from spk2img.runtime.block_codec import OnnxBlockCodec, block_graph_paths
     from spk2img.runtime.onnx_backend import OnnxModel
 
-    predict = OnnxModel(model, threads=threads, device=device)
+    predict = OnnxModel(model, threads=threads, device=device, memory_arena=memory_arena)
     codec = None
     if block_reuse and all(path.is_file() for path in block_graph_paths(predict.path).values()):
-        codec = OnnxBlockCodec(predict.path, threads=threads, device=predict.device)
+        codec = OnnxBlockCodec(
+            predict.path, threads=threads, device=predict.device, memory_arena=memory_arena
+        )
     return LoadedNetwork(predict, predict.geometry, codec, batch)
 
 

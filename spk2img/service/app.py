@@ -13,16 +13,12 @@ from functools import partial
 from fastapi import Depends, FastAPI
 
 from spk2img import __version__
+from spk2img.runtime.allocator import map_large_allocations_apart
 from spk2img.runtime.loader import load_network
 
 from .errors import install_error_handlers
 from .inference import InferencePool
-from .memory import (
-    budget_problem,
-    container_limit_bytes,
-    map_large_allocations_apart,
-    resident_bytes,
-)
+from .memory import budget_problem, container_limit_bytes, resident_bytes
 from .metrics import MetricsMiddleware
 from .query import single_valued_query
 from .reconstruction import typical_request_bytes
@@ -70,7 +66,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         batch=settings.batch,
         warm_up=False,  # in the pool, after start-up: /readyz says when it is done
     )
-    map_large_allocations_apart()  # freed buffers go back to the system (service.memory)
+    map_large_allocations_apart()  # freed buffers go back to the system (runtime.allocator)
     state.network = await asyncio.to_thread(load)  # a GPU that cannot run here: no start
     model = state.network.predict
     if model.device_note:

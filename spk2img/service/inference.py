@@ -9,7 +9,7 @@ Each admission also reserves an estimate of the memory its request may use (see
 :func:`spk2img.service.reconstruction.job_memory`); a request whose estimate does not fit in
 what is left of ``budget`` bytes is turned away too. The reservation is given back with the
 place, once the request's last job has finished. Soon after the last admission is given back
-the pool returns the memory its requests freed to the system (:mod:`spk2img.service.memory`).
+the pool returns the memory its requests freed to the system (:mod:`spk2img.runtime.allocator`).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
-from .memory import release_free_memory
+from spk2img.runtime.allocator import release_free_memory
 
 T = TypeVar("T")
 IDLE_TRIM_SECONDS = 0.5
