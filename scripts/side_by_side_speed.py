@@ -22,14 +22,13 @@ import onnxruntime as ort
 from spk2img.bench.streaming import stream_benchmark
 from spk2img.bench.timing import matmul_gflops
 from spk2img.runtime.block_codec import block_graph_paths
+from spk2img.runtime.onnx_backend import session_options
 
 HEIGHT, WIDTH, REPEATS, STREAM_FRAMES = 250, 400, 7, 300
 
 
 def session(path: str, threads: int) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
-    options.enable_cpu_mem_arena = False  # as the runtime's sessions
+    options = session_options(threads, memory_arena=True)  # as the CLI's and the API's
     return ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
 
 

@@ -97,8 +97,7 @@ def test_a_reconstructor_keeps_the_memory_arena_and_a_served_network_does_not():
     sessions = {
         "reconstructor": [recon.network.predict.session]
         + [part.session for part in recon.network.codec.parts.values()],
-        "served": [served.predict.session]
-        + [part.session for part in served.codec.parts.values()],
+        "served": [served.predict.session] + [part.session for part in served.codec.parts.values()],
     }
     arenas = {
         name: {s.get_session_options().enable_cpu_mem_arena for s in group}

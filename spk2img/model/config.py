@@ -242,9 +242,9 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
 }
 """The named family members, largest first: ``paper`` (3.90 M parameters), ``small`` (0.49 M,
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
-after SALI: a quarter of ``small``'s cost), ``cpu`` (0.70 M, built for CPUs: SALI on 2x2 patches
-folded into channels, 32 channels at a quarter of the size after it; 12.6 G MACs, the least
-of all), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
+after SALI: a quarter of ``small``'s cost), ``cpu`` (0.72 M, built for CPUs: SALI on 2x2 patches
+folded into channels, 32 channels at a quarter of the size after it, a detail refinement at
+half size; 13.1 G MACs, the least of all), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
 
 
 def get_config(name: str) -> Spk2ImgNetConfig:
