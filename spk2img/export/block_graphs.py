@@ -33,14 +33,8 @@ import numpy as np
 import torch
 from torch.export import Dim
 
-from spk2img.model.block_code import DETAIL_CODE, code_role
-from spk2img.model.block_split import (
-    AlignFuseHead,
-    BlockEncoder,
-    model_code_names,
-    repeated_code,
-    role_blocks,
-)
+from spk2img.model.block_code import DETAIL_CODE, code_role, role_blocks
+from spk2img.model.block_split import AlignFuseHead, BlockEncoder, model_code_names, repeated_code
 from spk2img.model.network import Spk2ImgNet
 from spk2img.runtime.block_codec import OnnxBlockCodec, block_graph_paths
 from spk2img.runtime.block_stream import BlockReuseStream

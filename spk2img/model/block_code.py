@@ -25,3 +25,9 @@ def code_names(levels: int, detail: bool = False) -> list[str]:
 def code_role(name: str) -> str:
     """The role of a code array (``feat``, ``nbr``, ``key`` or ``sali``) from its name."""
     return name.split("_")[0]
+
+
+def role_blocks(num_blocks: int) -> dict[str, int | None]:
+    """Blocks each code role stacks in the head's inputs: all of them, the neighbours
+    (``num_blocks - 1``), or None: the key block's only, no axis."""
+    return {"feat": num_blocks, "nbr": num_blocks - 1, "key": None, DETAIL_CODE: num_blocks}

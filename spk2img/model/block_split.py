@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .alignment import PCDAlignment
-from .block_code import code_names, code_role
+from .block_code import code_names, code_role, role_blocks
 from .network import Spk2ImgNet, pad_to_multiple, per_neighbour, to_intensity, without_key
 from .sali import fold
 
@@ -48,11 +48,6 @@ def key_terms(align: PCDAlignment, pyramid: list[torch.Tensor]) -> list[torch.Te
         F.conv2d(feat, conv.weight[:, c:], conv.bias, padding=1)
         for conv, feat in zip(convs, pyramid, strict=True)
     ]
-
-
-def role_blocks(num_blocks: int) -> dict[str, int | None]:
-    """Blocks each code role stacks in the head's inputs (None: the key block's only, no axis)."""
-    return {"feat": num_blocks, "nbr": num_blocks - 1, "key": None, "sali": num_blocks}
 
 
 def model_code_names(model: Spk2ImgNet) -> list[str]:

@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from spk2img.errors import InputError
-from spk2img.model.block_code import code_names, code_role
+from spk2img.model.block_code import code_names, code_role, role_blocks
 from spk2img.model.config import Geometry
 from spk2img.runtime.onnx_backend import create_session, model_path, run_session
 
@@ -116,13 +116,13 @@ def head_inputs(codes: Sequence[BlockCode], names: list[str], num_blocks: int) -
         raise ValueError(f"the head takes {num_blocks} block codes, got {len(codes)}")
     key = num_blocks // 2
     neighbours = [code for i, code in enumerate(codes) if i != key]
+    stacks = role_blocks(num_blocks)
     feeds = {}
     for index, name in enumerate(names):
-        role = code_role(name)
-        if role in ("feat", "sali"):
-            feeds[name] = np.stack([code[index] for code in codes])[None]
-        elif role == "nbr":
-            feeds[name] = np.stack([code[index] for code in neighbours])[None]
-        else:
+        stacked = stacks[code_role(name)]
+        if stacked is None:
             feeds[name] = codes[key][index][None]
+        else:
+            picked = codes if stacked == num_blocks else neighbours
+            feeds[name] = np.stack([code[index] for code in picked])[None]
     return feeds
