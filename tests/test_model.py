@@ -23,6 +23,7 @@ from spk2img.model.checkpoint import (
 from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
+from spk2img.model.detail import DetailRefinement
 from spk2img.model.network import build_model, pad_to_multiple
 from spk2img.model.sali import LightInference, fold, unfold
 
@@ -163,6 +164,32 @@ def test_config_rejects_impossible_shapes():
         get_config("huge")
     with pytest.raises(ValueError, match="sali_stride"):
         Spk2ImgNetConfig(sali_stride=2, feature_stride=3)
+    with pytest.raises(ValueError, match="detail_depth"):
+        Spk2ImgNetConfig(detail_hidden=8, detail_depth=0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    stride=st.sampled_from([1, 2]),
+    old=st.tuples(st.integers(1, 6), st.integers(1, 3)),
+    extra=st.tuples(st.integers(0, 5), st.integers(0, 2)),
+    seed=st.integers(0, 2**16),
+)
+def test_a_grown_detail_refinement_computes_what_the_smaller_one_did(stride, old, extra, seed):
+    """Widened and deepened from trained (random, non-zero) weights, the refinement's output is
+    unchanged; a refinement does not take the weights of a wider one."""
+    torch.manual_seed(seed)
+    (hidden, depth), estimates = old, 3 * stride**2
+    small = DetailRefinement(estimates, hidden, stride, depth)
+    small.body[-1].reset_parameters()  # a trained refinement's output conv is not zero
+    big = DetailRefinement(estimates, hidden + extra[0], stride, depth + extra[1])
+    big.grow_from(small.state_dict())
+    pred = torch.rand(2, 1, 4 * stride, 6 * stride)
+    est = torch.rand(2, 1, estimates, 4, 6)
+    with torch.no_grad():
+        torch.testing.assert_close(big(pred, est), small(pred, est))
+    with pytest.raises(ValueError, match="wider or deeper"):
+        small.grow_from(DetailRefinement(estimates, hidden + 1, stride, depth).state_dict())
 
 
 @settings(max_examples=30, deadline=None)

@@ -194,18 +194,23 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
         train(TrainConfig(steps=1, **TINY_RUN | {"run_dir": str(corrupt_run)}))
 
 
-def test_init_grows_a_member_by_its_detail_refinement(tmp_path):
-    """A ``cpu`` checkpoint from before the member had its detail refinement starts a run of
-    ``cpu``: every weight it holds is loaded and the refinement starts at zero, so the grown
-    network computes what the checkpoint's did; weights that do not fit are refused."""
-    plain_config = dataclasses.replace(get_config("cpu"), detail_hidden=0)
+@pytest.mark.parametrize("detail", [(0, 1), (24, 1)], ids=["without", "narrower"])
+def test_init_grows_a_member_by_its_detail_refinement(tmp_path, detail):
+    """A ``cpu`` checkpoint from before the member had its detail refinement, or had a narrower
+    and shallower one, starts a run of ``cpu``: every weight it holds is loaded and what the
+    refinement gains starts where it adds nothing, so the grown network computes what the
+    checkpoint's did; weights that do not fit are refused."""
+    hidden, depth = detail
+    plain_config = dataclasses.replace(get_config("cpu"), detail_hidden=hidden, detail_depth=depth)
     torch.manual_seed(0)
     plain = Spk2ImgNet(plain_config).eval()
+    if plain.detail is not None:
+        plain.detail.body[-1].reset_parameters()  # as trained: the refinement adds something
     save_checkpoint(
         tmp_path / "plain.pt", model=plain.state_dict(), config=config_to_dict(plain_config)
     )
     grown = build_model("cpu").eval()
-    assert grown.detail is not None and plain.detail is None
+    assert grown.config.detail_hidden > hidden and grown.config.detail_depth > depth
     load_initial_weights(grown, str(tmp_path / "plain.pt"))
     spikes = (torch.rand(2, 41, 20, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
     with torch.no_grad():

@@ -144,8 +144,10 @@ class Spk2ImgNetConfig:
     ``s * s`` output channels into the full-size image (pixel shuffle)."""
     detail_hidden: int = 0
     """Hidden channels of the detail refinement (not in the paper; 0: none, as published): after
-    a reduced-size fusion, two 3x3 convs at SALI's resolution step add detail from every block's
-    SALI estimates to the image (:mod:`spk2img.model.detail`)."""
+    a reduced-size fusion, ``detail_depth + 1`` 3x3 convs at SALI's resolution step add detail
+    from every block's SALI estimates to the image (:mod:`spk2img.model.detail`)."""
+    detail_depth: int = 1
+    """Hidden 3x3 convs of the detail refinement (1: ``in -> hidden -> s * s``)."""
 
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
@@ -166,6 +168,8 @@ class Spk2ImgNetConfig:
             raise ValueError(f"feature_stride must be >= 1, got {self.feature_stride}")
         if self.detail_hidden < 0:
             raise ValueError(f"detail_hidden must be >= 0, got {self.detail_hidden}")
+        if self.detail_depth < 1:
+            raise ValueError(f"detail_depth must be >= 1, got {self.detail_depth}")
         if self.sali_stride < 1 or self.feature_stride % self.sali_stride:
             raise ValueError(
                 f"sali_stride={self.sali_stride} must divide feature_stride={self.feature_stride}"
@@ -226,7 +230,8 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         reliability_hidden=32,
         fusion_hidden=64,
         feature_stride=4,
-        detail_hidden=24,
+        detail_hidden=48,
+        detail_depth=2,
     ),
     "tiny": replace(
         PAPER,
@@ -242,9 +247,10 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
 }
 """The named family members, largest first: ``paper`` (3.90 M parameters), ``small`` (0.49 M,
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
-after SALI: a quarter of ``small``'s cost), ``cpu`` (0.72 M, built for CPUs: SALI on 2x2 patches
-folded into channels, 32 channels at a quarter of the size after it, a detail refinement at
-half size; 13.1 G MACs, the least of all), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
+after SALI: a quarter of ``small``'s cost), ``cpu`` (0.76 M, built for CPUs: SALI on 2x2 patches
+folded into channels, 32 channels at a quarter of the size after it, a detail refinement of
+two 48-channel convs at half size; 14.1 G MACs, the least of all), ``tiny`` (74 k, 12 channels,
+a 2-level pyramid)."""
 
 
 def get_config(name: str) -> Spk2ImgNetConfig:

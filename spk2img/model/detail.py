@@ -14,26 +14,28 @@ class DetailRefinement(nn.Module):
     image, where it moves the key's own estimates do.
 
     At SALI's resolution step ``s``: conv3x3 on ``[prediction folded s x s, the blocks'
-    attention-weighted SALI estimates]`` -> ``hidden``, ReLU, conv3x3 -> ``s * s``, added to the
-    folded prediction and unfolded. The last conv starts at zero, so a network grown by this
-    module starts out as the one it grew from.
+    attention-weighted SALI estimates]`` -> ``hidden``, ReLU, ``depth - 1`` times conv3x3
+    ``hidden -> hidden``, ReLU, then conv3x3 -> ``s * s``, added to the folded prediction and
+    unfolded. The last conv starts at zero, so a network grown by this module starts out as the
+    one it grew from.
 
     Args:
         estimates: channels of the blocks' weighted estimates (``blocks * n * s * s`` for ``n``
             sub-windows).
         hidden: hidden channels.
         stride: SALI's resolution step ``s``.
+        depth: hidden convs (each followed by a ReLU).
     """
 
-    def __init__(self, estimates: int, hidden: int, stride: int) -> None:
+    def __init__(self, estimates: int, hidden: int, stride: int, depth: int = 1) -> None:
         super().__init__()
         self.stride = stride
         pixels = stride**2
-        self.body = nn.Sequential(
-            nn.Conv2d(estimates + pixels, hidden, 3, padding=1),
-            nn.ReLU(),
-            nn.Conv2d(hidden, pixels, 3, padding=1),
-        )
+        layers: list[nn.Module] = [nn.Conv2d(estimates + pixels, hidden, 3, padding=1), nn.ReLU()]
+        for _ in range(depth - 1):
+            layers += [nn.Conv2d(hidden, hidden, 3, padding=1), nn.ReLU()]
+        layers.append(nn.Conv2d(hidden, pixels, 3, padding=1))
+        self.body = nn.Sequential(*layers)
         nn.init.zeros_(self.body[-1].weight)
         nn.init.zeros_(self.body[-1].bias)
 
@@ -43,3 +45,38 @@ class DetailRefinement(nn.Module):
         folded = fold(pred, self.stride)
         inputs = torch.cat([folded, estimates.flatten(1, 2)], dim=1)
         return unfold(folded + self.body(inputs), self.stride)
+
+    @torch.no_grad()
+    def grow_from(self, state: dict[str, torch.Tensor]) -> None:
+        """Load the weights of a narrower or shallower refinement (``state``: its
+        ``body.<i>.weight`` and ``.bias``) so that this one computes exactly what it did.
+
+        The old hidden channels come first; the new ones keep their fresh weights but reach
+        the old channels and the output through zeros, and each hidden conv the old one lacked
+        passes the old channels through (an identity kernel: a ReLU of a ReLU is itself), so
+        training starts from the old refinement and grows into the new width and depth.
+        Raises ``ValueError`` when ``state`` is wider or deeper than this module or reads
+        other inputs.
+        """
+        convs = [layer for layer in self.body if isinstance(layer, nn.Conv2d)]
+        indices = sorted({int(key.split(".")[1]) for key in state})
+        old = [(state[f"body.{i}.weight"], state[f"body.{i}.bias"]) for i in indices]
+        hidden = old[0][0].shape[0]
+        if (
+            len(old) > len(convs)
+            or hidden > convs[0].out_channels
+            or old[0][0].shape[1:] != convs[0].weight.shape[1:]
+            or old[-1][0].shape[0] != convs[-1].out_channels
+        ):
+            raise ValueError("the refinement's weights are wider or deeper than this one")
+        (first, last), (old_first, old_last) = (convs[0], convs[-1]), (old[0], old[-1])
+        first.weight[:hidden], first.bias[:hidden] = old_first
+        for i, conv in enumerate(convs[1:-1], start=1):
+            conv.weight[:hidden] = 0.0
+            if i < len(old) - 1:
+                conv.weight[:hidden, :hidden], conv.bias[:hidden] = old[i]
+            else:
+                conv.weight[range(hidden), range(hidden), 1, 1] = 1.0
+                conv.bias[:hidden] = 0.0
+        last.weight.zero_()
+        last.weight[:, :hidden], last.bias[:] = old_last

@@ -57,6 +57,7 @@ class Spk2ImgNet(nn.Module):
                 config.num_blocks * len(config.sali_subwindows) * config.sali_stride**2,
                 config.detail_hidden,
                 config.sali_stride,
+                config.detail_depth,
             )
             if config.detail_hidden
             else None

@@ -31,7 +31,7 @@ from spk2img.model.checkpoint import (
     save_checkpoint,
     stored_config,
 )
-from spk2img.model.config import get_config
+from spk2img.model.config import Spk2ImgNetConfig, get_config
 from spk2img.model.network import Spk2ImgNet
 from spk2img.provenance import git_commit
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
@@ -302,11 +302,21 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
     stored = stored_config(state, path)
     if stored == model.config:
         load_weights(model, state, path)
-    elif stored == dataclasses.replace(model.config, detail_hidden=0):
-        # the member grown by the detail refinement: that module starts where it adds nothing
-        missing, unexpected = model.load_state_dict(state["model"], strict=False)
+    elif grows_detail(stored, model.config):
+        # the member grown by (or in) the detail refinement: it starts as the checkpoint's net
+        weights = state["model"]
+        rest = {key: value for key, value in weights.items() if not key.startswith("detail.")}
+        missing, unexpected = model.load_state_dict(rest, strict=False)
         if unexpected or any(not key.startswith("detail.") for key in missing):
             raise InputError(f"--init {path}: its weights do not fit the member being trained")
+        detail = {k[len("detail.") :]: v for k, v in weights.items() if k.startswith("detail.")}
+        if detail:
+            try:
+                model.detail.grow_from(detail)
+            except (KeyError, ValueError, RuntimeError) as exc:
+                raise InputError(
+                    f"--init {path}: its detail refinement does not fit: {exc}"
+                ) from exc
     else:
         raise InputError(f"--init {path}: another shape than the member being trained")
     return {
@@ -316,6 +326,21 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
         "wall_s": float(state.get("wall_s", 0.0)),
         "commit": state.get("commit", "unknown"),
     }
+
+
+def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
+    """Whether ``config`` is ``stored`` with a detail refinement added, or widened or deepened
+    (:meth:`~spk2img.model.detail.DetailRefinement.grow_from`)."""
+    same_rest = stored == dataclasses.replace(
+        config, detail_hidden=stored.detail_hidden, detail_depth=stored.detail_depth
+    )
+    return (
+        same_rest
+        and stored != config
+        and config.detail_hidden > 0
+        and stored.detail_hidden <= config.detail_hidden
+        and (stored.detail_hidden == 0 or stored.detail_depth <= config.detail_depth)
+    )
 
 
 def describe_hardware(device: torch.device, threads: int) -> str:
