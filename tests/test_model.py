@@ -4,6 +4,7 @@ counts, shapes at odd sizes, finite outputs on extreme inputs, gradients everywh
 from __future__ import annotations
 
 import math
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -200,10 +201,16 @@ def test_a_grown_detail_refinement_computes_what_the_smaller_one_did(stride, old
     cols=st.integers(1, 3),
     seed=st.integers(0, 2**16),
 )
-def test_fold_puts_each_patch_pixel_in_its_documented_channel(stride, channels, rows, cols, seed):
+@pytest.mark.parametrize("exporting", [False, True], ids=["eager", "onnx-export"])
+def test_fold_puts_each_patch_pixel_in_its_documented_channel(
+    exporting, stride, channels, rows, cols, seed
+):
+    """Both ways of folding (the eager pixel unshuffle, and the one-hot grouped conv the ONNX
+    export writes) put each pixel exactly in its channel."""
     generator = torch.Generator().manual_seed(seed)
     x = torch.randn(2, channels, rows * stride, cols * stride, generator=generator)
-    folded = fold(x, stride)
+    with mock.patch("torch.onnx.is_in_onnx_export", return_value=exporting):
+        folded = fold(x, stride)
     assert folded.shape == (2, channels * stride**2, rows, cols)
     for c in range(channels):
         for y in range(rows * stride):
