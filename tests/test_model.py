@@ -26,7 +26,7 @@ from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
 from spk2img.model.detail import DetailRefinement
 from spk2img.model.network import build_model, pad_to_multiple
-from spk2img.model.sali import LightInference, fold, unfold
+from spk2img.model.sali import LightInference, fold, refold, unfold
 
 torch.set_num_threads(1)
 
@@ -218,6 +218,24 @@ def test_fold_puts_each_patch_pixel_in_its_documented_channel(
                 channel = c * stride**2 + (y % stride) * stride + x_ % stride
                 assert torch.equal(folded[:, channel, y // stride, x_ // stride], x[:, c, y, x_])
     assert torch.equal(unfold(folded, stride), x)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    stride=st.integers(1, 2),
+    step=st.integers(1, 3),
+    channels=st.integers(1, 3),
+    seed=st.integers(0, 2**16),
+)
+@pytest.mark.parametrize("exporting", [False, True], ids=["eager", "onnx-export"])
+def test_refold_is_an_unfold_then_a_fold(exporting, stride, step, channels, seed):
+    """Both ways of refolding (the eager pair, and the one-hot grouped conv the ONNX export
+    writes) give exactly the image folded at the new stride."""
+    image = torch.randn(2, channels, 6 * stride * step, 4 * stride * step)
+    image = image.normal_(generator=torch.Generator().manual_seed(seed))
+    with mock.patch("torch.onnx.is_in_onnx_export", return_value=exporting):
+        refolded = refold(fold(image, stride), stride, stride * step)
+    assert torch.equal(refolded, F.pixel_unshuffle(image, stride * step))
 
 
 def _averaging_sali(stride: int) -> LightInference:

@@ -15,7 +15,7 @@ from .config import Spk2ImgNetConfig, get_config
 from .detail import DetailRefinement
 from .features import FeatureExtractor
 from .fusion import ReliabilityFusion
-from .sali import LightInference, fold, unfold
+from .sali import LightInference, fold, refold, unfold
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
@@ -122,7 +122,7 @@ class Spk2ImgNet(nn.Module):
         cfg = self.config
         step = cfg.feature_stride // cfg.sali_stride
         if step > 1:  # refold at the feature stride: channels estimate-major as fold() gives
-            weighted = fold(unfold(weighted, cfg.sali_stride), cfg.feature_stride)
+            weighted = refold(weighted, cfg.sali_stride, cfg.feature_stride)
         return self.pyramid(self.features(weighted))
 
     def fuse(

@@ -9,18 +9,30 @@ from torch import nn
 
 def fold(x: torch.Tensor, stride: int) -> torch.Tensor:
     """``(b, c, h, w)`` -> ``(b, c * stride**2, h / stride, w / stride)`` (pixel unshuffle:
-    channel ``i * stride**2 + (y % stride) * stride + x % stride``); ``x`` itself for stride 1.
+    channel ``i * stride**2 + (y % stride) * stride + x % stride``); ``x`` itself for stride 1."""
+    return refold(x, 1, stride)
 
-    Exported to ONNX as a grouped stride-``s`` conv whose kernels pick one pixel each (exact):
-    ONNX's SpaceToDepth orders the channels otherwise, and the reshape and 6-D transpose that
-    ``pixel_unshuffle`` exports to cost onnxruntime 5 % of the ``cpu`` member's frame."""
-    if stride == 1:
+
+def refold(x: torch.Tensor, stride: int, to_stride: int) -> torch.Tensor:
+    """``x`` folded by ``stride`` -> the same image folded by ``to_stride`` (a multiple of it):
+    ``fold(unfold(x, stride), to_stride)``, ``(b, c * s**2, h, w)`` -> ``(b, c * t**2, h * s / t,
+    w * s / t)``.
+
+    Exported to ONNX as one conv of stride ``t / s``, grouped per channel ``c``, whose one-hot
+    kernels each pick one value (exact): ``pixel_unshuffle`` exports to a reshape and a 6-D
+    transpose (and the pair to a DepthToSpace besides), which cost onnxruntime about 5 % of the
+    ``cpu`` member's frame; ONNX's SpaceToDepth orders the channels otherwise."""
+    if to_stride == stride:
         return x
     if not torch.onnx.is_in_onnx_export():
-        return F.pixel_unshuffle(x, stride)
-    pixels = stride**2
-    picks = torch.eye(pixels, dtype=x.dtype, device=x.device).reshape(pixels, 1, stride, stride)
-    return F.conv2d(x, picks.repeat(x.shape[1], 1, 1, 1), stride=stride, groups=x.shape[1])
+        return F.pixel_unshuffle(unfold(x, stride), to_stride)
+    step, channels = to_stride // stride, x.shape[1] // stride**2
+    picks = torch.zeros(to_stride**2, stride**2, step, step, dtype=x.dtype, device=x.device)
+    for y in range(to_stride):
+        for x_ in range(to_stride):
+            source = (y % stride) * stride + x_ % stride
+            picks[y * to_stride + x_, source, y // stride, x_ // stride] = 1.0
+    return F.conv2d(x, picks.repeat(channels, 1, 1, 1), stride=step, groups=channels)
 
 
 def unfold(x: torch.Tensor, stride: int) -> torch.Tensor:
