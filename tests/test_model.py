@@ -231,8 +231,8 @@ def test_fold_puts_each_patch_pixel_in_its_documented_channel(
 def test_refold_is_an_unfold_then_a_fold(exporting, stride, step, channels, seed):
     """Both ways of refolding (the eager pair, and the one-hot grouped conv the ONNX export
     writes) give exactly the image folded at the new stride."""
-    image = torch.randn(2, channels, 6 * stride * step, 4 * stride * step)
-    image = image.normal_(generator=torch.Generator().manual_seed(seed))
+    generator = torch.Generator().manual_seed(seed)
+    image = torch.randn(2, channels, 6 * stride * step, 4 * stride * step, generator=generator)
     with mock.patch("torch.onnx.is_in_onnx_export", return_value=exporting):
         refolded = refold(fold(image, stride), stride, stride * step)
     assert torch.equal(refolded, F.pixel_unshuffle(image, stride * step))

@@ -120,9 +120,9 @@ class Spk2ImgNet(nn.Module):
         first, ``(b, c, hp / (s * 2**(l-1)), wp / (s * 2**(l-1)))`` with ``s`` the feature
         stride."""
         cfg = self.config
-        step = cfg.feature_stride // cfg.sali_stride
-        if step > 1:  # refold at the feature stride: channels estimate-major as fold() gives
-            weighted = refold(weighted, cfg.sali_stride, cfg.feature_stride)
+        # refold at the feature stride (itself where the strides are equal): channels
+        # estimate-major as fold() gives
+        weighted = refold(weighted, cfg.sali_stride, cfg.feature_stride)
         return self.pyramid(self.features(weighted))
 
     def fuse(
