@@ -27,6 +27,7 @@ from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_co
 from spk2img.model.detail import DetailRefinement
 from spk2img.model.network import build_model, pad_to_multiple
 from spk2img.model.sali import LightInference, fold, refold, unfold
+from spk2img.model.warp import warp
 
 torch.set_num_threads(1)
 
@@ -191,6 +192,76 @@ def test_a_grown_detail_refinement_computes_what_the_smaller_one_did(stride, old
         torch.testing.assert_close(big(pred, est), small(pred, est))
     with pytest.raises(ValueError, match="wider or deeper"):
         small.grow_from(DetailRefinement(estimates, hidden + 1, stride, depth).state_dict())
+    est3 = torch.rand(2, 3, estimates, 4, 6)  # three blocks: two neighbours warped
+    motion = torch.rand(2 * 2, 2, 4, 6)
+    three = DetailRefinement(3 * estimates, hidden, stride, depth)
+    three.body[-1].reset_parameters()
+    aligned3 = DetailRefinement(3 * estimates, hidden, stride, depth, 2, motion_stride=stride)
+    aligned3.grow_from(three.state_dict())  # the flow starts at zero motion: the same output
+    with torch.no_grad():
+        torch.testing.assert_close(aligned3(pred, est3, motion), three(pred, est3))
+    with pytest.raises(ValueError, match="warp"):
+        three.grow_from(aligned3.state_dict())
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    dy=st.integers(-3, 3),
+    dx=st.integers(-3, 3),
+    fraction=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**16),
+)
+def test_warp_samples_where_the_flow_points(dy, dx, fraction, seed):
+    """A whole-pixel flow moves the image by whole pixels (the border repeated outside it); a
+    fractional one along x interpolates the two pixels it falls between."""
+    image = torch.rand(1, 2, 7, 9, generator=torch.Generator().manual_seed(seed))
+    flow = torch.tensor([float(dy), float(dx)]).view(1, 2, 1, 1).expand(1, 2, 7, 9)
+    rows = (torch.arange(7) + dy).clamp(0, 6)
+    cols = (torch.arange(9) + dx).clamp(0, 8)
+    torch.testing.assert_close(warp(image, flow), image[:, :, rows][:, :, :, cols])
+    half = torch.tensor([0.0, fraction]).view(1, 2, 1, 1).expand(1, 2, 7, 9)
+    mixed = (1 - fraction) * image[..., :-1] + fraction * image[..., 1:]
+    torch.testing.assert_close(warp(image, half)[..., :-1], mixed)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    stride=st.sampled_from([1, 2]),
+    motion_stride=st.sampled_from([2, 4]),
+    shift=st.tuples(st.integers(-2, 2), st.integers(-2, 2)),
+    seed=st.integers(0, 2**16),
+)
+def test_the_aligned_refinement_warps_each_neighbour_onto_the_key(
+    stride, motion_stride, shift, seed
+):
+    """Neighbours ``t`` blocks from the key that see the scene moved by ``t * shift`` pixels,
+    given the flow ``-t * shift``, come out as the key's estimates away from the border; the
+    key's own are untouched."""
+    generator = torch.Generator().manual_seed(seed)
+    n, height, width, margin = 3, 8 * motion_stride, 12 * motion_stride, 4
+    refinement = DetailRefinement(5 * n * stride**2, 4, stride, 1, 2, motion_stride)
+    with torch.no_grad():  # flow = the motion feature, which is in coarse (1/motion_stride) px
+        refinement.flow.weight.zero_()
+        refinement.flow.weight[[0, 1], [0, 1], 1, 1] = 1.0
+    scene = torch.rand(1, n, height + 2 * margin, width + 2 * margin, generator=generator)
+    views, motion = [], []
+    for t in range(-2, 3):  # temporal order, the key at t = 0
+        dy, dx = margin + t * shift[0], margin + t * shift[1]
+        views.append(fold(scene[..., dy : dy + height, dx : dx + width], stride))
+        if t:
+            coarse = torch.tensor([-t * shift[0], -t * shift[1]]) / motion_stride
+            motion.append(
+                coarse.view(2, 1, 1).expand(2, height // motion_stride, width // motion_stride)
+            )
+    estimates = torch.stack(views, dim=1)  # (1, 5, n * s * s, h / s, w / s)
+    with torch.no_grad():
+        aligned = refinement.align(estimates, torch.stack(motion))
+    assert aligned.shape == estimates.shape
+    torch.testing.assert_close(aligned[:, 2], estimates[:, 2], rtol=0, atol=0)
+    key = unfold(estimates[:, 2], stride)[..., margin:-margin, margin:-margin]
+    for block in (0, 1, 3, 4):
+        moved = unfold(aligned[:, block], stride)[..., margin:-margin, margin:-margin]
+        torch.testing.assert_close(moved, key)
 
 
 @settings(max_examples=30, deadline=None)

@@ -194,14 +194,19 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
         train(TrainConfig(steps=1, **TINY_RUN | {"run_dir": str(corrupt_run)}))
 
 
-@pytest.mark.parametrize("detail", [(0, 1), (24, 1)], ids=["without", "narrower"])
+@pytest.mark.parametrize(
+    "detail", [(0, 1), (24, 1), (48, 2)], ids=["without", "narrower", "unaligned"]
+)
 def test_init_grows_a_member_by_its_detail_refinement(tmp_path, detail):
     """A ``cpu`` checkpoint from before the member had its detail refinement, or had a narrower
-    and shallower one, starts a run of ``cpu``: every weight it holds is loaded and what the
-    refinement gains starts where it adds nothing, so the grown network computes what the
-    checkpoint's did; weights that do not fit are refused."""
+    and shallower one, or one that read its inputs unaligned, starts a run of ``cpu``: every
+    weight it holds is loaded and what the refinement gains starts where it adds nothing (the
+    flow at zero motion), so the grown network computes what the checkpoint's did; weights that
+    do not fit are refused."""
     hidden, depth = detail
-    plain_config = dataclasses.replace(get_config("cpu"), detail_hidden=hidden, detail_depth=depth)
+    plain_config = dataclasses.replace(
+        get_config("cpu"), detail_hidden=hidden, detail_depth=depth, detail_aligned=False
+    )
     torch.manual_seed(0)
     plain = Spk2ImgNet(plain_config).eval()
     if plain.detail is not None:
@@ -210,7 +215,8 @@ def test_init_grows_a_member_by_its_detail_refinement(tmp_path, detail):
         tmp_path / "plain.pt", model=plain.state_dict(), config=config_to_dict(plain_config)
     )
     grown = build_model("cpu").eval()
-    assert grown.config.detail_hidden > hidden and grown.config.detail_depth > depth
+    assert grown.config != plain_config and grown.config.detail_aligned
+    assert grown.config.detail_hidden >= hidden and grown.config.detail_depth >= depth
     load_initial_weights(grown, str(tmp_path / "plain.pt"))
     spikes = (torch.rand(2, 41, 20, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
     with torch.no_grad():

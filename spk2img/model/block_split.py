@@ -112,13 +112,14 @@ class AlignFuseHead(nn.Module):
         )
         weighted = codes[3 * levels] if net.detail is not None else None
         key_feat = pyramid[0][:, key]  # (b, c, h_f, w_f)
-        aligned = net.align.align_levels(
+        aligned, motion = net.align.align_levels(
             [without_key(level, key).flatten(0, 1) for level in pyramid],
             [
                 n.flatten(0, 1) + per_neighbour(k, neighbours)
                 for n, k in zip(nbr_terms, key_terms_, strict=True)
             ],
             per_neighbour(key_feat, neighbours),
-        ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
-        pred = net.fuse(list(aligned.unbind(1)), key_feat, weighted)
+        )  # (b * neighbours, c, h_f, w_f) each
+        aligned = aligned.unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
+        pred = net.fuse(list(aligned.unbind(1)), key_feat, weighted, motion)
         return to_intensity(pred, pred.shape[-2], pred.shape[-1], training=False)

@@ -148,6 +148,9 @@ class Spk2ImgNetConfig:
     from every block's SALI estimates to the image (:mod:`spk2img.model.detail`)."""
     detail_depth: int = 1
     """Hidden 3x3 convs of the detail refinement (1: ``in -> hidden -> s * s``)."""
+    detail_aligned: bool = False
+    """The detail refinement warps the neighbours' SALI estimates to the key first, by a flow
+    that a conv3x3 reads from the alignment's level-1 offset feature (False: read unaligned)."""
 
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
@@ -170,6 +173,8 @@ class Spk2ImgNetConfig:
             raise ValueError(f"detail_hidden must be >= 0, got {self.detail_hidden}")
         if self.detail_depth < 1:
             raise ValueError(f"detail_depth must be >= 1, got {self.detail_depth}")
+        if self.detail_aligned and not self.detail_hidden:
+            raise ValueError("detail_aligned needs a detail refinement (detail_hidden > 0)")
         if self.sali_stride < 1 or self.feature_stride % self.sali_stride:
             raise ValueError(
                 f"sali_stride={self.sali_stride} must divide feature_stride={self.feature_stride}"
@@ -232,6 +237,7 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         feature_stride=4,
         detail_hidden=48,
         detail_depth=2,
+        detail_aligned=True,
     ),
     "tiny": replace(
         PAPER,

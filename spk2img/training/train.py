@@ -329,10 +329,13 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
 
 
 def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
-    """Whether ``config`` is ``stored`` with a detail refinement added, or widened or deepened
-    (:meth:`~spk2img.model.detail.DetailRefinement.grow_from`)."""
+    """Whether ``config`` is ``stored`` with a detail refinement added, widened, deepened or
+    aligned (:meth:`~spk2img.model.detail.DetailRefinement.grow_from`)."""
     same_rest = stored == dataclasses.replace(
-        config, detail_hidden=stored.detail_hidden, detail_depth=stored.detail_depth
+        config,
+        detail_hidden=stored.detail_hidden,
+        detail_depth=stored.detail_depth,
+        detail_aligned=stored.detail_aligned,
     )
     return (
         same_rest
@@ -340,6 +343,7 @@ def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
         and config.detail_hidden > 0
         and stored.detail_hidden <= config.detail_hidden
         and (stored.detail_hidden == 0 or stored.detail_depth <= config.detail_depth)
+        and stored.detail_aligned <= config.detail_aligned
     )
 
 
