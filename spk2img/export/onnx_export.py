@@ -117,8 +117,7 @@ def random_source(
     zero), scaled by :data:`RANDOM_OFFSET_GAIN`: the random network's offsets are then a few
     pixels, fractional and spatially varying, and its masks spread over (0, 1), so the exported
     graph's deformable sampling is really exercised (borders included). The detail
-    refinement's last conv and flow (also zero at the start of training) are random too, the
-    flow scaled likewise.
+    refinement's last conv (also zero at the start of training) is random too.
     """
     if isinstance(member, str) and member not in MEMBERS:
         raise InputError(f"unknown member {member!r}; choose one of {', '.join(MEMBERS)}")
@@ -134,11 +133,6 @@ def random_source(
                     module.conv_offset_mask.bias.mul_(RANDOM_OFFSET_GAIN)
             elif isinstance(module, DetailRefinement):
                 module.body[-1].reset_parameters()
-                if module.flow is not None:
-                    module.flow.reset_parameters()
-                    with torch.no_grad():
-                        module.flow.weight.mul_(RANDOM_OFFSET_GAIN)
-                        module.flow.bias.mul_(RANDOM_OFFSET_GAIN)
     finally:
         torch.random.set_rng_state(generator_state)
     source = f"random weights, seed {seed}"

@@ -85,9 +85,7 @@ class PCDAlignment(nn.Module):
         self.cas_dcn_pack = ModulatedDeformConv2d(channels, channels, channels, groups)
         self.lrelu = nn.LeakyReLU(0.1)
 
-    def forward(
-        self, neighbour: list[torch.Tensor], key: list[torch.Tensor]
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, neighbour: list[torch.Tensor], key: list[torch.Tensor]) -> torch.Tensor:
         """Align one neighbour per batch item to its key.
 
         Args:
@@ -95,9 +93,7 @@ class PCDAlignment(nn.Module):
             key: the key's pyramid, the same shapes.
 
         Returns:
-            The aligned neighbour ``(b, c, h, w)`` and level 1's offset feature ``(b, c, h,
-            w)`` (what its deformable conv reads its offsets from: the motion, for the detail
-            refinement).
+            The aligned neighbour ``(b, c, h, w)``.
         """
         first_offsets = [
             self.offset_conv1[f"l{i}"](torch.cat([nbr, k], dim=1))
@@ -110,7 +106,7 @@ class PCDAlignment(nn.Module):
         neighbour: list[torch.Tensor],
         first_offsets: list[torch.Tensor],
         key_feat: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
+    ) -> torch.Tensor:
         """The pyramid and the cascade, given each level's first offset conv on
         ``[neighbour, key]`` (before its LeakyReLU): :meth:`forward` computes it from the pair,
         :mod:`spk2img.model.block_split` from per-block terms.
@@ -121,8 +117,7 @@ class PCDAlignment(nn.Module):
             key_feat: the key's level-1 features ``(b, c, h, w)`` (for the cascade).
 
         Returns:
-            As :meth:`forward`: the aligned neighbour and level 1's offset feature, ``(b, c,
-            h, w)`` each.
+            The aligned neighbour ``(b, c, h, w)``.
         """
         upsampled_offset: torch.Tensor | None = None  # from level l + 1, (b, c, h_l, w_l)
         upsampled_feat: torch.Tensor | None = None
@@ -144,8 +139,7 @@ class PCDAlignment(nn.Module):
                 upsampled_feat = _upsample(feat)
 
         # cascade at level 1
-        motion = offset  # level 1's offset feature
         offset = torch.cat([feat, key_feat], dim=1)
         offset = self.lrelu(self.cas_offset_conv1(offset))
         offset = self.lrelu(self.cas_offset_conv2(offset))
-        return self.lrelu(self.cas_dcn_pack(feat, offset)), motion  # (b, c, h, w) each
+        return self.lrelu(self.cas_dcn_pack(feat, offset))  # (b, c, h, w)

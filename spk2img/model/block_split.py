@@ -25,7 +25,8 @@ from torch import nn
 
 from .alignment import PCDAlignment
 from .block_code import code_names, code_role, role_blocks
-from .network import Spk2ImgNet, pad_to_multiple, per_neighbour, to_intensity, without_key
+from .block_ops import per_neighbour, without_key
+from .network import Spk2ImgNet, pad_to_multiple, to_intensity
 from .sali import fold
 
 
@@ -112,14 +113,13 @@ class AlignFuseHead(nn.Module):
         )
         weighted = codes[3 * levels] if net.detail is not None else None
         key_feat = pyramid[0][:, key]  # (b, c, h_f, w_f)
-        aligned, motion = net.align.align_levels(
+        aligned = net.align.align_levels(
             [without_key(level, key).flatten(0, 1) for level in pyramid],
             [
                 n.flatten(0, 1) + per_neighbour(k, neighbours)
                 for n, k in zip(nbr_terms, key_terms_, strict=True)
             ],
             per_neighbour(key_feat, neighbours),
-        )  # (b * neighbours, c, h_f, w_f) each
-        aligned = aligned.unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
-        pred = net.fuse(list(aligned.unbind(1)), key_feat, weighted, motion)
+        ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
+        pred = net.fuse(list(aligned.unbind(1)), key_feat, weighted)
         return to_intensity(pred, pred.shape[-2], pred.shape[-1], training=False)

@@ -149,8 +149,9 @@ class Spk2ImgNetConfig:
     detail_depth: int = 1
     """Hidden 3x3 convs of the detail refinement (1: ``in -> hidden -> s * s``)."""
     detail_aligned: bool = False
-    """The detail refinement warps the neighbours' SALI estimates to the key first, by a flow
-    that a conv3x3 reads from the alignment's level-1 offset feature (False: read unaligned)."""
+    """The detail refinement warps the neighbours' SALI estimates to the key first, by the
+    Lucas-Kanade flow between the blocks' intensities at the feature stride (no weights;
+    False: read unaligned)."""
 
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
@@ -255,7 +256,8 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
 after SALI: a quarter of ``small``'s cost), ``cpu`` (0.76 M, built for CPUs: SALI on 2x2 patches
 folded into channels, 32 channels at a quarter of the size after it, a detail refinement of
-two 48-channel convs at half size; 14.1 G MACs, the least of all), ``tiny`` (74 k, 12 channels,
+two 48-channel convs at half size on the blocks' estimates warped to the key; 14.2 G MACs, the
+least of all), ``tiny`` (74 k, 12 channels,
 a 2-level pyramid)."""
 
 

@@ -11,6 +11,7 @@ from torch import nn
 from spk2img.io.light import SPIKE_RATE
 
 from .alignment import FeaturePyramid, PCDAlignment
+from .block_ops import per_neighbour, without_key
 from .config import Spk2ImgNetConfig, get_config
 from .detail import DetailRefinement
 from .features import FeatureExtractor
@@ -58,8 +59,7 @@ class Spk2ImgNet(nn.Module):
                 config.detail_hidden,
                 config.sali_stride,
                 config.detail_depth,
-                config.channels if config.detail_aligned else 0,
-                stride,
+                config.feature_stride if config.detail_aligned else 0,
             )
             if config.detail_hidden
             else None
@@ -104,15 +104,14 @@ class Spk2ImgNet(nn.Module):
         # align each neighbour to the key, all neighbours in one batch
         neighbours = cfg.num_blocks - 1
         key_pyramid = [level[:, key] for level in pyramid]  # (b, c, h_l, w_l) per level
-        aligned, motion = self.align(
+        aligned = self.align(
             [without_key(level, key).flatten(0, 1) for level in pyramid],
             [per_neighbour(level, neighbours) for level in key_pyramid],
-        )  # (b * neighbours, c, h_f, w_f) each
-        aligned = aligned.unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
+        ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
 
         # reliability fusion (and the detail of SALI's estimates) -> 0.6 * I
         weighted = weighted.unflatten(0, (-1, cfg.num_blocks))  # (b, blocks, n * s * s, ...)
-        pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0], weighted, motion)
+        pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0], weighted)  # (b, 1, hp, wp)
         image = to_intensity(pred, h, w, self.training)
         estimates = unfold(estimates, cfg.sali_stride).unflatten(0, (-1, cfg.num_blocks))
         estimates = estimates[..., :h, :w] / SPIKE_RATE
@@ -133,25 +132,13 @@ class Spk2ImgNet(nn.Module):
         aligned: list[torch.Tensor],
         key_feat: torch.Tensor,
         weighted: torch.Tensor | None,
-        motion: torch.Tensor | None,
     ) -> torch.Tensor:
         """The aligned neighbours (temporal order) and the key's level-1 features, each
-        ``(b, c, h_f, w_f)``, every block's weighted SALI estimates ``(b, blocks, n * s * s,
-        hp / s, wp / s)`` and the alignment's level-1 offset feature of each neighbour
-        ``(b * neighbours, c, h_f, w_f)`` (both read only by the detail refinement; may be None
-        without one) -> the prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
+        ``(b, c, h_f, w_f)``, and every block's weighted SALI estimates ``(b, blocks, n * s * s,
+        hp / s, wp / s)`` (read only by the detail refinement; may be None without one) -> the
+        prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
         pred = unfold(self.fusion(aligned, key_feat), self.config.feature_stride)
-        return pred if self.detail is None else self.detail(pred, weighted, motion)
-
-
-def per_neighbour(tensor: torch.Tensor, neighbours: int) -> torch.Tensor:
-    """The key's ``(b, ...)`` repeated for each of its neighbours: ``(b * neighbours, ...)``."""
-    return tensor.unsqueeze(1).expand(-1, neighbours, *tensor.shape[1:]).flatten(0, 1)
-
-
-def without_key(level: torch.Tensor, key: int) -> torch.Tensor:
-    """``(b, blocks, ...)`` -> ``(b, blocks - 1, ...)``: the neighbours, in temporal order."""
-    return torch.cat([level[:, :key], level[:, key + 1 :]], dim=1)
+        return pred if self.detail is None else self.detail(pred, weighted)
 
 
 def to_intensity(pred: torch.Tensor, height: int, width: int, training: bool) -> torch.Tensor:
