@@ -25,7 +25,7 @@ from spk2img.model.complexity import count_macs, count_parameters, count_stream_
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
 from spk2img.model.detail import MOTION_DEADBAND, DetailRefinement
-from spk2img.model.motion import lucas_kanade
+from spk2img.model.motion import block_motion, lucas_kanade
 from spk2img.model.network import build_model, pad_to_multiple
 from spk2img.model.sali import LightInference, fold, refold, unfold
 from spk2img.model.warp import warp
@@ -169,6 +169,10 @@ def test_config_rejects_impossible_shapes():
         Spk2ImgNetConfig(sali_stride=2, feature_stride=3)
     with pytest.raises(ValueError, match="detail_depth"):
         Spk2ImgNetConfig(detail_hidden=8, detail_depth=0)
+    with pytest.raises(ValueError, match="detail_aligned"):
+        Spk2ImgNetConfig(detail_aligned=True)
+    with pytest.raises(ValueError, match="flow_guided"):
+        Spk2ImgNetConfig(detail_hidden=8, flow_guided=True)
 
 
 @settings(max_examples=25, deadline=None)
@@ -198,8 +202,9 @@ def test_a_grown_detail_refinement_computes_what_the_smaller_one_did(stride, old
     aligned = DetailRefinement(3 * estimates, hidden, stride, depth, motion_stride=2 * stride)
     aligned.grow_from(three.state_dict())  # on a still scene: the same output
     still = torch.rand(2, 1, estimates, 4, 6).expand(2, 3, estimates, 4, 6)
+    motion = block_motion(still, stride, 2 * stride)
     with torch.no_grad():
-        torch.testing.assert_close(aligned(pred, still), three(pred, still))
+        torch.testing.assert_close(aligned(pred, still, motion), three(pred, still))
 
 
 @settings(max_examples=30, deadline=None)
@@ -253,6 +258,23 @@ def test_lucas_kanade_finds_the_motion_of_a_textured_scene(dy, dx, seed):
     assert lucas_kanade(key, key).abs().max() < 1e-5
 
 
+@settings(max_examples=20, deadline=None)
+@given(dy=st.integers(-2, 2), dx=st.integers(-2, 2), seed=st.integers(0, 2**16))
+def test_a_flow_moves_every_tap_of_the_deformable_conv(dy, dx, seed):
+    """A whole-pixel flow given to a deformable conv samples the input that far away: its
+    output is the flow-free output moved by the flow (inside the image)."""
+    torch.manual_seed(seed)
+    dcn = ModulatedDeformConv2d(4, 3, 2, groups=2)
+    x, condition = torch.randn(1, 4, 10, 12), torch.randn(1, 2, 10, 12)
+    with torch.no_grad():
+        dcn.conv_offset_mask.weight.normal_(0.0, 0.01)  # small offsets, masks of every kind
+        flow = torch.tensor([float(dy), float(dx)]).view(1, 2, 1, 1).expand(1, 2, 10, 12)
+        moved_condition = torch.roll(condition, (-dy, -dx), dims=(2, 3))  # read at p + flow
+        moved = dcn(x, moved_condition, flow)[..., 3:-3, 3:-3]
+        plain = dcn(x, condition)[..., 3 + dy : 10 - 3 + dy, 3 + dx : 12 - 3 + dx]
+    torch.testing.assert_close(moved, plain)
+
+
 @settings(max_examples=15, deadline=None)
 @given(
     stride=st.sampled_from([1, 2]),
@@ -261,7 +283,8 @@ def test_lucas_kanade_finds_the_motion_of_a_textured_scene(dy, dx, seed):
 )
 def test_the_aligned_refinement_warps_each_neighbour_onto_the_key(stride, shift, seed):
     """Blocks ``t`` blocks from the key that see a textured scene moved by ``t * shift`` px
-    come out of :meth:`DetailRefinement.align` moved back by their motion less the dead band
+    come out of :meth:`DetailRefinement.align`, given their
+    :func:`~spk2img.model.motion.block_motion`, moved back by their motion less the dead band
     (to 4 % of the scene, away from the border; the two outer ones start 1.5 times further
     off); the key's own estimates are untouched."""
     n, height, width, margin = 2, 48, 64, 12
@@ -277,7 +300,7 @@ def test_the_aligned_refinement_warps_each_neighbour_onto_the_key(stride, shift,
     views = [view(t * shift[0], t * shift[1]) for t in range(-2, 3)]
     estimates = torch.stack([fold(v, stride) for v in views], dim=1)
     with torch.no_grad():
-        aligned = refinement.align(estimates)
+        aligned = refinement.align(estimates, block_motion(estimates, stride, 4))
     assert aligned.shape == estimates.shape
     assert torch.equal(aligned[:, 2], estimates[:, 2])
     inside = (..., slice(margin, -margin), slice(margin, -margin))

@@ -201,13 +201,18 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
 )
 def test_init_grows_a_member_by_its_detail_refinement(tmp_path, detail):
     """A ``cpu`` checkpoint from before the member had its detail refinement, or had a narrower
-    and shallower one, or one that read the blocks unaligned, starts a run of ``cpu``: every
-    weight it holds is loaded and what the refinement gains starts where it adds nothing, so
-    the grown network computes what the checkpoint's did (where the blocks hold still, for the
-    aligned one); weights that do not fit are refused."""
+    and shallower one, or one that read the blocks unaligned, or before the blocks' motion
+    guided its alignment, starts a run of ``cpu``: every weight it holds is loaded and what the
+    network gains starts where it changes nothing on a still scene (no motion, a refinement
+    that adds nothing), so there the grown network computes what the checkpoint's did; weights
+    that do not fit are refused."""
     hidden, depth, aligned = detail
     plain_config = dataclasses.replace(
-        get_config("cpu"), detail_hidden=hidden, detail_depth=depth, detail_aligned=aligned
+        get_config("cpu"),
+        detail_hidden=hidden,
+        detail_depth=depth,
+        detail_aligned=aligned,
+        flow_guided=False,
     )
     torch.manual_seed(0)
     plain = Spk2ImgNet(plain_config).eval()
@@ -217,13 +222,14 @@ def test_init_grows_a_member_by_its_detail_refinement(tmp_path, detail):
         tmp_path / "plain.pt", model=plain.state_dict(), config=config_to_dict(plain_config)
     )
     grown = build_model("cpu").eval()
-    assert grown.config != plain_config and grown.config.detail_aligned
+    assert grown.config != plain_config and grown.config.flow_guided
     load_initial_weights(grown, str(tmp_path / "plain.pt"))
-    spikes = (torch.rand(2, 41, 20, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
-    if hidden and not aligned:  # the same weights, which read the blocks warped where they move
-        for name, value in plain.state_dict().items():
+    same_refinement = (grown.config.detail_hidden, grown.config.detail_depth) == (hidden, depth)
+    for name, value in plain.state_dict().items():  # a grown refinement's: by its output
+        if same_refinement or not name.startswith("detail."):
             assert torch.equal(grown.state_dict()[name], value), name
-        spikes = spikes[:, :7].repeat(1, 6, 1, 1)[:, :41]  # period 7: five equal blocks
+    spikes = (torch.rand(2, 7, 20, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
+    spikes = spikes.repeat(1, 6, 1, 1)[:, :41]  # period 7: the five blocks are equal
     with torch.no_grad():
         torch.testing.assert_close(grown(spikes)[0], plain(spikes)[0])
     weights = plain.state_dict()

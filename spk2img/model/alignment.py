@@ -17,6 +17,15 @@ def _upsample(x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
 
 
+def level_flow(flow: torch.Tensor | None, level: int) -> torch.Tensor | None:
+    """Level-1 motion ``(b, 2, h, w)`` (pixels) at pyramid level ``level``: averaged over
+    ``2**(level-1)`` squares and in that level's pixels (None stays None)."""
+    if flow is None or level == 1:
+        return flow
+    scale = 2 ** (level - 1)
+    return F.avg_pool2d(flow, scale) / scale
+
+
 class FeaturePyramid(nn.Module):
     """Level ``l`` is level ``l - 1`` through a stride-2 conv3x3 and a conv3x3, each with
     LeakyReLU 0.1; level 1 is the input.
@@ -85,12 +94,20 @@ class PCDAlignment(nn.Module):
         self.cas_dcn_pack = ModulatedDeformConv2d(channels, channels, channels, groups)
         self.lrelu = nn.LeakyReLU(0.1)
 
-    def forward(self, neighbour: list[torch.Tensor], key: list[torch.Tensor]) -> torch.Tensor:
+    def forward(
+        self,
+        neighbour: list[torch.Tensor],
+        key: list[torch.Tensor],
+        flow: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """Align one neighbour per batch item to its key.
 
         Args:
             neighbour: the neighbour's pyramid, level 1 first, ``(b, c, h_l, w_l)`` per level.
             key: the key's pyramid, the same shapes.
+            flow: the neighbour's motion to the key ``(b, 2, h, w)`` (``(dy, dx)``, level-1
+                pixels), or None: each pyramid level's deformable conv adds it (averaged and
+                scaled to the level) to its offsets.
 
         Returns:
             The aligned neighbour ``(b, c, h, w)``.
@@ -99,13 +116,14 @@ class PCDAlignment(nn.Module):
             self.offset_conv1[f"l{i}"](torch.cat([nbr, k], dim=1))
             for i, (nbr, k) in enumerate(zip(neighbour, key, strict=True), start=1)
         ]
-        return self.align_levels(neighbour, first_offsets, key[0])
+        return self.align_levels(neighbour, first_offsets, key[0], flow)
 
     def align_levels(
         self,
         neighbour: list[torch.Tensor],
         first_offsets: list[torch.Tensor],
         key_feat: torch.Tensor,
+        flow: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """The pyramid and the cascade, given each level's first offset conv on
         ``[neighbour, key]`` (before its LeakyReLU): :meth:`forward` computes it from the pair,
@@ -115,6 +133,7 @@ class PCDAlignment(nn.Module):
             neighbour: the neighbour's pyramid, ``(b, c, h_l, w_l)`` per level, level 1 first.
             first_offsets: ``offset_conv1`` of each level on ``[neighbour, key]``, same shapes.
             key_feat: the key's level-1 features ``(b, c, h, w)`` (for the cascade).
+            flow: as in :meth:`forward`.
 
         Returns:
             The aligned neighbour ``(b, c, h, w)``.
@@ -130,7 +149,7 @@ class PCDAlignment(nn.Module):
                 offset = torch.cat([offset, upsampled_offset], dim=1)
                 offset = self.lrelu(self.offset_conv2[level](offset))
                 offset = self.lrelu(self.offset_conv3[level](offset))
-            feat = self.dcn_pack[level](neighbour[i - 1], offset)  # (b, c, h_l, w_l)
+            feat = self.dcn_pack[level](neighbour[i - 1], offset, level_flow(flow, i))
             if upsampled_feat is not None:
                 feat = self.feat_conv[level](torch.cat([feat, upsampled_feat], dim=1))
             if i > 1:

@@ -112,6 +112,7 @@ class AlignFuseHead(nn.Module):
             list(codes[i * levels : (i + 1) * levels]) for i in range(3)
         )
         weighted = codes[3 * levels] if net.detail is not None else None
+        motion = None if weighted is None else net.block_motion(weighted)
         key_feat = pyramid[0][:, key]  # (b, c, h_f, w_f)
         aligned = net.align.align_levels(
             [without_key(level, key).flatten(0, 1) for level in pyramid],
@@ -120,6 +121,7 @@ class AlignFuseHead(nn.Module):
                 for n, k in zip(nbr_terms, key_terms_, strict=True)
             ],
             per_neighbour(key_feat, neighbours),
+            motion if cfg.flow_guided else None,
         ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
-        pred = net.fuse(list(aligned.unbind(1)), key_feat, weighted)
+        pred = net.fuse(list(aligned.unbind(1)), key_feat, weighted, motion)
         return to_intensity(pred, pred.shape[-2], pred.shape[-1], training=False)

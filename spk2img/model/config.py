@@ -152,6 +152,11 @@ class Spk2ImgNetConfig:
     """The detail refinement warps the neighbours' SALI estimates to the key first, by the
     Lucas-Kanade flow between the blocks' intensities at the feature stride (no weights;
     False: read unaligned)."""
+    flow_guided: bool = False
+    """The blocks' motion that aligns the detail refinement (so ``detail_aligned`` is needed)
+    also guides the alignment: each pyramid level's deformable conv adds it to its offsets,
+    which then learn what is left of the motion (flow-guided deformable alignment, as in
+    BasicVSR++; not in the paper)."""
 
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
@@ -176,6 +181,8 @@ class Spk2ImgNetConfig:
             raise ValueError(f"detail_depth must be >= 1, got {self.detail_depth}")
         if self.detail_aligned and not self.detail_hidden:
             raise ValueError("detail_aligned needs a detail refinement (detail_hidden > 0)")
+        if self.flow_guided and not self.detail_aligned:
+            raise ValueError("flow_guided needs the aligned detail refinement (detail_aligned)")
         if self.sali_stride < 1 or self.feature_stride % self.sali_stride:
             raise ValueError(
                 f"sali_stride={self.sali_stride} must divide feature_stride={self.feature_stride}"
@@ -239,6 +246,7 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         detail_hidden=48,
         detail_depth=2,
         detail_aligned=True,
+        flow_guided=True,
     ),
     "tiny": replace(
         PAPER,

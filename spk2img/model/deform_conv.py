@@ -117,13 +117,18 @@ class ModulatedDeformConv2d(nn.Module):
         nn.init.zeros_(self.conv_offset_mask.weight)
         nn.init.zeros_(self.conv_offset_mask.bias)
 
-    def forward(self, x: torch.Tensor, condition: torch.Tensor) -> torch.Tensor:
-        """``x`` ``(b, in, h, w)``, ``condition`` ``(b, condition_channels, h, w)`` ->
-        ``(b, out, h, w)``."""
+    def forward(
+        self, x: torch.Tensor, condition: torch.Tensor, flow: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``x`` ``(b, in, h, w)``, ``condition`` ``(b, condition_channels, h, w)`` and
+        optionally a ``flow`` ``(b, 2, h, w)`` (``(dy, dx)`` px, added to every tap's offset:
+        the predicted offsets are then what is left of the motion) -> ``(b, out, h, w)``."""
         offset_mask = self.conv_offset_mask(condition)  # (b, 3 * K * groups, h, w)
         offset, mask_logits = offset_mask.split(
             [2 * self.kernel_size**2 * self.groups, self.kernel_size**2 * self.groups], dim=1
         )
+        if flow is not None:  # offsets read as (group, tap, [dy, dx])
+            offset = (offset.unflatten(1, (-1, 2)) + flow.unsqueeze(1)).flatten(1, 2)
         return modulated_deform_conv2d(
             x, offset, torch.sigmoid(mask_logits), self.weight, self.bias, self.groups
         )

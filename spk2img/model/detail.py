@@ -6,8 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .block_ops import per_neighbour, without_key
-from .motion import lucas_kanade
+from .block_ops import without_key
 from .sali import fold, unfold
 from .warp import warp
 
@@ -16,19 +15,13 @@ MOTION_DEADBAND = 0.5
 scenes the noise of 13-frame estimates gives flows of 0.1-0.4 px that move nothing but blur
 the neighbours' detail in bilinear sampling."""
 
-MOTION_DAMPING = 1e-3
-"""The damping of the blocks' Lucas-Kanade systems (:func:`~spk2img.model.motion.lucas_kanade`;
-intensity in units of the estimates, about 0 .. 0.6): 1e-4 leaves on still scenes flows of
-0.3 px median and 0.85 px at the 90th percentile from the estimates' noise, 1e-3 a quarter of
-that, 1e-2 shrinks real motion tenfold."""
-
 
 class DetailRefinement(nn.Module):
     """Adds fine detail to a prediction made at ``1/feature_stride`` size from every block's
     SALI estimates: where the scene holds still their whole window sharpens the image, where
     it moves the key's own estimates do. With ``motion_stride``, the neighbours' estimates
-    are first warped to the key (:meth:`align`) by the Lucas-Kanade flow between their
-    intensities at ``1/motion_stride`` of the size.
+    are first warped to the key (:meth:`align`) by their motion
+    (:func:`~spk2img.model.motion.block_motion`, at ``1/motion_stride`` of the size).
 
     At SALI's resolution step ``s``: conv3x3 on ``[prediction folded s x s, the blocks'
     attention-weighted SALI estimates]`` -> ``hidden``, ReLU, ``depth - 1`` times conv3x3
@@ -42,8 +35,8 @@ class DetailRefinement(nn.Module):
         hidden: hidden channels.
         stride: SALI's resolution step ``s``.
         depth: hidden convs (each followed by a ReLU).
-        motion_stride: resolution step at which the motion between the blocks is estimated
-            (a multiple of ``stride``; 0: the estimates are read unaligned).
+        motion_stride: resolution step of the blocks' motion (a multiple of ``stride``; 0:
+            the estimates are read unaligned).
     """
 
     def __init__(
@@ -68,37 +61,35 @@ class DetailRefinement(nn.Module):
         nn.init.zeros_(self.body[-1].weight)
         nn.init.zeros_(self.body[-1].bias)
 
-    def forward(self, pred: torch.Tensor, estimates: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, pred: torch.Tensor, estimates: torch.Tensor, motion: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """``pred`` ``(b, 1, hp, wp)`` and the blocks' ``estimates`` ``(b, blocks, n * s * s,
-        hp / s, wp / s)`` -> the refined ``(b, 1, hp, wp)``."""
+        hp / s, wp / s)`` (and, with a motion stride, their ``motion``: see :meth:`align`) ->
+        the refined ``(b, 1, hp, wp)``."""
         if self.motion_stride:
-            estimates = self.align(estimates)
+            estimates = self.align(estimates, motion)
         folded = fold(pred, self.stride)
         inputs = torch.cat([folded, estimates.flatten(1, 2)], dim=1)
         return unfold(folded + self.body(inputs), self.stride)
 
-    def align(self, estimates: torch.Tensor) -> torch.Tensor:
-        """Warp the neighbours' estimates to the key block.
-
-        The motion of each neighbour is :func:`~spk2img.model.motion.lucas_kanade` between its
-        intensity (the mean of its estimates) and the key's at ``1/f`` of the size (``f`` the
-        motion stride), less :data:`MOTION_DEADBAND` and upsampled to full size; the estimates
-        are warped at full size. No gradient reaches the estimates through the flow.
+    def align(self, estimates: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+        """Warp the neighbours' estimates to the key block: by their motion less
+        :data:`MOTION_DEADBAND`, upsampled to full size, at full size.
 
         Args:
             estimates: ``(b, blocks, n * s * s, hp / s, wp / s)``, every block in temporal order.
+            motion: ``(b * (blocks - 1), 2, hp / f, wp / f)``, each neighbour's motion in pixels
+                of ``1/f`` size (``f`` the motion stride;
+                :func:`~spk2img.model.motion.block_motion`).
 
         Returns:
-            The same, each neighbour's estimates sampled where the flow points, the key's as
+            The same, each neighbour's estimates sampled where its motion points, the key's as
             they were.
         """
         blocks, f, s = estimates.shape[1], self.motion_stride, self.stride
         key = blocks // 2
-        intensity = estimates.detach().mean(2, keepdim=True).flatten(0, 1)  # at 1/s
-        intensity = F.avg_pool2d(intensity, f // s).unflatten(0, (-1, blocks))  # at 1/f
-        keys = per_neighbour(intensity[:, key], blocks - 1)  # (b * neighbours, 1, ...)
-        others = without_key(intensity, key).flatten(0, 1)
-        flow = lucas_kanade(keys, others, damping=MOTION_DAMPING) * f  # full-size px, at 1/f
+        flow = motion * f  # full-size pixels
         flow = flow - flow.clamp(-MOTION_DEADBAND, MOTION_DEADBAND)
         flow = F.interpolate(flow, scale_factor=f, mode="bilinear", align_corners=False)
         neighbours = without_key(estimates, key)

@@ -6,7 +6,14 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from .block_ops import per_neighbour, without_key
 from .warp import warp
+
+MOTION_DAMPING = 1e-3
+"""The damping of the blocks' Lucas-Kanade systems (:func:`block_motion`; intensity in units of
+SALI's estimates, about 0 .. 0.6): 1e-4 leaves on still scenes flows of 0.3 px median and
+0.85 px at the 90th percentile from the estimates' noise, 1e-3 a quarter of that, 1e-2 shrinks
+real motion tenfold."""
 
 
 def gradients(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -67,3 +74,28 @@ def lucas_kanade(
         if i + 1 < iterations:
             moved = warp(other, flow)
     return flow
+
+
+def block_motion(estimates: torch.Tensor, stride: int, motion_stride: int) -> torch.Tensor:
+    """Each neighbour block's motion to the key block, from SALI's estimates.
+
+    :func:`lucas_kanade` between the neighbour's intensity (the mean of its estimates) and the
+    key's, both at ``1/f`` of the size (``f`` the motion stride). No gradient flows through it.
+
+    Args:
+        estimates: ``(b, blocks, n * s * s, hp / s, wp / s)``, every block in temporal order,
+            folded by ``stride`` (``s``).
+        stride: the estimates' fold ``s``.
+        motion_stride: ``f``, a multiple of ``s``.
+
+    Returns:
+        ``(b * (blocks - 1), 2, hp / f, wp / f)``: per neighbour in order, ``(dy, dx)`` in
+        pixels of ``1/f`` size such that the neighbour sampled there is the key.
+    """
+    blocks = estimates.shape[1]
+    key = blocks // 2
+    intensity = estimates.detach().mean(2, keepdim=True).flatten(0, 1)  # at 1/s
+    intensity = F.avg_pool2d(intensity, motion_stride // stride).unflatten(0, (-1, blocks))
+    keys = per_neighbour(intensity[:, key], blocks - 1)  # (b * neighbours, 1, hp / f, wp / f)
+    others = without_key(intensity, key).flatten(0, 1)
+    return lucas_kanade(keys, others, damping=MOTION_DAMPING)

@@ -16,6 +16,7 @@ from .config import Spk2ImgNetConfig, get_config
 from .detail import DetailRefinement
 from .features import FeatureExtractor
 from .fusion import ReliabilityFusion
+from .motion import block_motion
 from .sali import LightInference, fold, refold, unfold
 
 
@@ -95,11 +96,13 @@ class Spk2ImgNet(nn.Module):
             dim=1,
         ).flatten(0, 1)  # (b * blocks, block_frames * s * s, hp / s, wp / s)
 
-        # SALI, features and pyramid, shared by the blocks
+        # SALI, features and pyramid, shared by the blocks; the blocks' motion
         weighted, estimates = self.sali(blocks)  # (b * blocks, n * s * s, hp / s, wp / s) each
         pyramid = [
             level.unflatten(0, (-1, cfg.num_blocks)) for level in self.block_pyramid(weighted)
         ]  # (b, blocks, c, h_l, w_l) per level
+        weighted = weighted.unflatten(0, (-1, cfg.num_blocks))  # (b, blocks, n * s * s, ...)
+        motion = self.block_motion(weighted)  # (b * neighbours, 2, h_f, w_f) or None
 
         # align each neighbour to the key, all neighbours in one batch
         neighbours = cfg.num_blocks - 1
@@ -107,11 +110,11 @@ class Spk2ImgNet(nn.Module):
         aligned = self.align(
             [without_key(level, key).flatten(0, 1) for level in pyramid],
             [per_neighbour(level, neighbours) for level in key_pyramid],
+            motion if cfg.flow_guided else None,
         ).unflatten(0, (-1, neighbours))  # (b, neighbours, c, h_f, w_f)
 
         # reliability fusion (and the detail of SALI's estimates) -> 0.6 * I
-        weighted = weighted.unflatten(0, (-1, cfg.num_blocks))  # (b, blocks, n * s * s, ...)
-        pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0], weighted)  # (b, 1, hp, wp)
+        pred = self.fuse(list(aligned.unbind(1)), key_pyramid[0], weighted, motion)
         image = to_intensity(pred, h, w, self.training)
         estimates = unfold(estimates, cfg.sali_stride).unflatten(0, (-1, cfg.num_blocks))
         estimates = estimates[..., :h, :w] / SPIKE_RATE
@@ -127,18 +130,30 @@ class Spk2ImgNet(nn.Module):
         weighted = refold(weighted, cfg.sali_stride, cfg.feature_stride)
         return self.pyramid(self.features(weighted))
 
+    def block_motion(self, weighted: torch.Tensor) -> torch.Tensor | None:
+        """Every block's weighted SALI estimates ``(b, blocks, n * s * s, hp / s, wp / s)`` ->
+        each neighbour's motion to the key at the feature stride ``(b * neighbours, 2, h_f,
+        w_f)`` (:func:`~spk2img.model.motion.block_motion`), for members that align their
+        detail refinement (else None)."""
+        cfg = self.config
+        if not cfg.detail_aligned:
+            return None
+        return block_motion(weighted, cfg.sali_stride, cfg.feature_stride)
+
     def fuse(
         self,
         aligned: list[torch.Tensor],
         key_feat: torch.Tensor,
         weighted: torch.Tensor | None,
+        motion: torch.Tensor | None,
     ) -> torch.Tensor:
         """The aligned neighbours (temporal order) and the key's level-1 features, each
-        ``(b, c, h_f, w_f)``, and every block's weighted SALI estimates ``(b, blocks, n * s * s,
-        hp / s, wp / s)`` (read only by the detail refinement; may be None without one) -> the
-        prediction of ``0.6 * I`` ``(b, 1, hp, wp)`` at full size."""
+        ``(b, c, h_f, w_f)``, every block's weighted SALI estimates ``(b, blocks, n * s * s,
+        hp / s, wp / s)`` and the neighbours' motion (:meth:`block_motion`; both read only by
+        the detail refinement, None without one) -> the prediction of ``0.6 * I`` ``(b, 1,
+        hp, wp)`` at full size."""
         pred = unfold(self.fusion(aligned, key_feat), self.config.feature_stride)
-        return pred if self.detail is None else self.detail(pred, weighted)
+        return pred if self.detail is None else self.detail(pred, weighted, motion)
 
 
 def to_intensity(pred: torch.Tensor, height: int, width: int, training: bool) -> torch.Tensor:

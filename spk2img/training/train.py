@@ -330,12 +330,14 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
 
 def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
     """Whether ``config`` is ``stored`` with a detail refinement added, widened, deepened or
-    aligned (:meth:`~spk2img.model.detail.DetailRefinement.grow_from`)."""
+    aligned, or its motion guiding the alignment (none adds weights beyond
+    :meth:`~spk2img.model.detail.DetailRefinement.grow_from`'s)."""
     same_rest = stored == dataclasses.replace(
         config,
         detail_hidden=stored.detail_hidden,
         detail_depth=stored.detail_depth,
         detail_aligned=stored.detail_aligned,
+        flow_guided=stored.flow_guided,
     )
     return (
         same_rest
@@ -344,6 +346,7 @@ def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
         and stored.detail_hidden <= config.detail_hidden
         and (stored.detail_hidden == 0 or stored.detail_depth <= config.detail_depth)
         and stored.detail_aligned <= config.detail_aligned
+        and stored.flow_guided <= config.flow_guided
     )
 
 
