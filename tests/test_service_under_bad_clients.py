@@ -158,7 +158,10 @@ def test_metric_labels_stay_bounded_under_random_values(guarded):
     def series(text: str) -> set[str]:
         return {line.rpartition(" ")[0] for line in text.splitlines() if not line.startswith("#")}
 
-    with httpx.Client(base_url=guarded.url, timeout=10) as client:
+    # a connection per request: on a kept-alive one, a client stalled past the 1 s header
+    # timeout (a loaded machine) would find it closed under its next request
+    fresh = httpx.Limits(max_keepalive_connections=0)
+    with httpx.Client(base_url=guarded.url, timeout=10, limits=fresh) as client:
         for _ in range(30):  # warm: every kind of request once
             client.request(junk(5).upper(), f"/{junk(8)}")
             client.get(f"/v1/reconstruct?format={junk(4)}")
