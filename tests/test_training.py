@@ -225,9 +225,10 @@ def test_init_grows_a_member_by_its_detail_refinement(tmp_path, detail):
     assert grown.config != plain_config and grown.config.flow_guided
     load_initial_weights(grown, str(tmp_path / "plain.pt"))
     same_refinement = (grown.config.detail_hidden, grown.config.detail_depth) == (hidden, depth)
+    grown_weights = grown.state_dict()
     for name, value in plain.state_dict().items():  # a grown refinement's: by its output
         if same_refinement or not name.startswith("detail."):
-            assert torch.equal(grown.state_dict()[name], value), name
+            assert torch.equal(grown_weights[name], value), name
     spikes = (torch.rand(2, 7, 20, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
     spikes = spikes.repeat(1, 6, 1, 1)[:, :41]  # period 7: the five blocks are equal
     with torch.no_grad():

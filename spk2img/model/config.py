@@ -264,9 +264,8 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
 after SALI: a quarter of ``small``'s cost), ``cpu`` (0.76 M, built for CPUs: SALI on 2x2 patches
 folded into channels, 32 channels at a quarter of the size after it, a detail refinement of
-two 48-channel convs at half size on the blocks' estimates warped to the key; 14.2 G MACs, the
-least of all), ``tiny`` (74 k, 12 channels,
-a 2-level pyramid)."""
+two 48-channel convs at half size on the blocks' estimates warped to the key; 14.1 G MACs, the
+least of all), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
 
 
 def get_config(name: str) -> Spk2ImgNetConfig:

@@ -18,6 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .warp import sampling_grid
+
 
 def modulated_deform_conv2d(
     x: torch.Tensor,
@@ -60,9 +62,7 @@ def modulated_deform_conv2d(
     sample_y = rows + tap_y + offset[:, :, :, 0]
     sample_x = cols + tap_x + offset[:, :, :, 1]
 
-    # grid_sample's coordinates with align_corners=False: pixel p -> (2p + 1) / size - 1
-    grid = torch.stack([(2 * sample_x + 1) / w - 1, (2 * sample_y + 1) / h - 1], dim=-1)
-    grid = grid.view(b * groups, taps * h_out, w_out, 2)
+    grid = sampling_grid(sample_y, sample_x, h, w).view(b * groups, taps * h_out, w_out, 2)
     sampled = F.grid_sample(
         x.reshape(b * groups, c_in // groups, h, w),
         grid,

@@ -48,8 +48,8 @@ def lucas_kanade(
     Each iteration solves, per pixel, the least-squares system of the key's gradients ``g``
     over a ``window x window`` neighbourhood, ``(sum g g^T + damping) step = sum g (key -
     warp(other, flow))``, and adds the step: a few iterations follow motion of a few pixels;
-    where the image is flat the damping keeps the flow near zero. Identical images give
-    exactly zero flow.
+    where the image is flat the damping keeps the flow near zero. Identical images give no
+    flow (to float rounding: the first step is exactly zero, the later ones resample).
 
     Args:
         key, other: ``(b, 1, h, w)`` intensity (about 0 .. 1).

@@ -6,6 +6,13 @@ import torch
 import torch.nn.functional as F
 
 
+def sampling_grid(rows: torch.Tensor, cols: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Sampling positions in pixels of an ``h x w`` input (``rows``, ``cols``, the same shape)
+    -> ``grid_sample``'s grid (``align_corners=False``: pixel ``p`` at ``(2p + 1) / size - 1``),
+    that shape plus a last dimension of 2, x first."""
+    return torch.stack([(2 * cols + 1) / w - 1, (2 * rows + 1) / h - 1], dim=-1)
+
+
 def warp(x: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Sample ``x`` where ``flow`` points: ``out[:, :, y, x] = x[:, :, y + dy, x + dx]``,
     bilinearly, the border replicated outside the image.
@@ -21,8 +28,5 @@ def warp(x: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     h, w = x.shape[-2:]
     rows = torch.arange(h, dtype=x.dtype, device=x.device).view(1, -1, 1)
     cols = torch.arange(w, dtype=x.dtype, device=x.device).view(1, 1, -1)
-    # grid_sample's coordinates with align_corners=False: pixel p -> (2p + 1) / size - 1
-    grid = torch.stack(
-        [(2 * (cols + flow[:, 1]) + 1) / w - 1, (2 * (rows + flow[:, 0]) + 1) / h - 1], dim=-1
-    )  # (b, h, w, 2), x first
+    grid = sampling_grid(rows + flow[:, 0], cols + flow[:, 1], h, w)  # (b, h, w, 2)
     return F.grid_sample(x, grid, mode="bilinear", padding_mode="border", align_corners=False)
