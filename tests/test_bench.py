@@ -43,7 +43,8 @@ def held_out_dir(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory, held_out_dir):
     out = tmp_path_factory.mktemp("bench")
-    assert main(["bench", "--quick", "--out-dir", str(out), "--data", str(held_out_dir)]) == 0
+    args = ["bench", "--quick", "--out-dir", str(out), "--data", str(held_out_dir)]
+    assert main([*args, "--stream-models", "default,tiny"]) == 0
     return out, json.loads((out / "bench.json").read_text()), (out / "bench.md").read_text()
 
 
@@ -122,14 +123,17 @@ def test_data_without_held_out_sources_exits_2(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_quick_streaming_section(quick_run):
-    """Block reuse streams the shipped model with the whole-window frames and fewer encodes;
+    """Block reuse streams each model asked for with the whole-window frames and fewer encodes;
     every quality tier is timed and scored per scene class."""
     out, results, text = quick_run
     streaming = json.loads((out / "bench_streaming.json").read_text())
     assert streaming["streaming"] == results["streaming"]
-    s = results["streaming"]
-    assert s["stride"] == 7 and s["frames"] == 90 and 0 < s["mac_ratio"] < 1
-    for row in s["rows"]:
+    assert [s["model"] for s in results["streaming"]] == ["spk2img-default", "spk2img-tiny"]
+    rows = []
+    for s in results["streaming"]:
+        assert s["stride"] == 7 and s["frames"] == 90 and 0 < s["mac_ratio"] < 1
+        rows += s["rows"]
+    for row in rows:
         whole, reuse = row["whole"], row["reuse"]
         assert (
             whole["reconstructor"] == "NetStream" and reuse["reconstructor"] == "BlockReuseStream"
@@ -146,6 +150,17 @@ def test_quick_streaming_section(quick_run):
     assert tiers["balanced"]["quality"]["psnr"] >= tiers["fast"]["quality"]["psnr"]
     md = (out / "bench_streaming.md").read_text()
     assert "reuse / whole" in md and "| balanced |" in md and "bench_streaming.md" in text
+    assert md.count("| `spk2img-tiny` (`tiny`") == len(results["settings"]["threads"])
+
+
+def test_stream_models_must_be_installed(tmp_path, capsys):
+    """A ``--stream-models`` name that is not a shipped model is a CLI error before any work."""
+    code = main(
+        ["bench", "--streaming-only", "--stream-models", "tiny,nope", "--out-dir", str(tmp_path)]
+    )
+    assert code == 2
+    assert "no shipped model nope" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
 
 
 @pytest.mark.slow

@@ -92,6 +92,9 @@ class BenchOptions:
     """Whether to load-test the HTTP service."""
     streaming: bool = True
     """Whether to run the streaming benchmark (block reuse)."""
+    stream_models: tuple[str, ...] = ("default",)
+    """Shipped models (their names in :func:`~spk2img.runtime.onnx_backend.shipped_models`) that
+    the streaming benchmark streams."""
     command: str = "spk2img bench"
     """The command line that reproduces this run (for the report)."""
     natural_data: tuple[Path, ...] = ()
@@ -327,15 +330,27 @@ def tiers_run(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> d
     return tiers_benchmark(shipped.onnx, cases, options.threads, work, log)
 
 
-def streaming_run(options: BenchOptions, work: Path, log: Log) -> dict:
-    """The streaming benchmark on the shipped model (``{"error"}`` when it is not installed)."""
-    shipped = artifacts.shipped()
-    if shipped is None:
-        return {"error": "the shipped model is not installed"}
+def streaming_run(options: BenchOptions, work: Path, log: Log) -> list[dict]:
+    """The streaming benchmark (:func:`~.streaming.stream_benchmark`) of each of
+    ``options.stream_models`` on one simulated stream; ``{"model", "error"}`` for a model that
+    is not installed."""
+    from spk2img.runtime.onnx_backend import shipped_models
+
     scale = options.scale
-    return stream_benchmark(
-        shipped.onnx, scale.stream_frames, scale.height, scale.width, options.threads, work, log
+    installed = shipped_models()
+    log(
+        f"simulating a {scale.stream_frames}-frame {scale.height}x{scale.width} stream "
+        "(fast motion, real-like sensor)"
     )
+    stream = work / "stream.npy"
+    np.save(stream, stream_spikes(scale.stream_frames, scale.height, scale.width))
+    results = []
+    for name in options.stream_models:
+        if name not in installed:
+            results.append({"model": f"spk2img-{name}", "error": "not installed"})
+            continue
+        results.append(stream_benchmark(installed[name], stream, options.threads, work, log))
+    return results
 
 
 def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> Plan:
