@@ -5,7 +5,8 @@
 :data:`spk2img.evaluation.real_video.REAL_VIDEO_CLIPS` found under ``DATA`` at each speed bin
 (:mod:`spk2img.evaluation.real_video`), once per seed, and writes each method's PSNR/SSIM: over
 all windows, per speed bin, per clip, with the spread over seeds (the standard deviation of the
-overall mean between seeds) and over clips.
+overall mean between seeds) and over clips. ``--add`` keeps the methods already in ``--json``
+(scored on the same windows: the same clips and seeds) and scores only the models given.
 """
 
 from __future__ import annotations
@@ -88,26 +89,35 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", type=Path, default=Path("docs/real_video.json"))
     p.add_argument("--md", type=Path, default=Path("docs/real_video.md"))
+    p.add_argument("--add", action="store_true", help="add the models to --json's methods")
     args = p.parse_args()
     start = time.perf_counter()
     windows = real_video_set(args.data, seeds=args.seeds)
     if not windows:
         raise SystemExit(f"none of the real-video clips under {args.data}")
     print(f"{len(windows)} windows filmed in {time.perf_counter() - start:.0f} s", flush=True)
-    methods = classical_methods()
+    earlier = json.loads(args.json.read_text()) if args.add else None
+    if earlier and (earlier["windows"], earlier["seeds"]) != (len(windows), args.seeds):
+        raise SystemExit(f"--add: {args.json} was scored on other windows or seeds")
+    methods = {} if earlier else classical_methods()
     for name in filter(None, args.models.split(",")):
         methods[name] = network_method(name, args.threads)
-    results = {}
+    results = dict(earlier["methods"]) if earlier else {}
     for name, method in methods.items():
         start = time.perf_counter()
         images = [method(w.spikes, w.truth) for w in windows]
         results[name] = real_video_scores(windows, images)
         results[name]["seconds"] = time.perf_counter() - start
         print(f"{name}: {results[name]['psnr']:.2f} dB", flush=True)
+    command = (
+        "python scripts/real_video_validation.py --data DATA "
+        f"--models {args.models} --seeds {args.seeds}"
+    )
     data = {
-        "command": "python scripts/real_video_validation.py --data DATA "
-        f"--models {args.models} --seeds {args.seeds}",
-        "date": time.strftime("%Y-%m-%d"),
+        "command": f"{earlier['command']} && {command} --add" if earlier else command,
+        "date": f"{earlier['date']} and {time.strftime('%Y-%m-%d')}"
+        if earlier
+        else time.strftime("%Y-%m-%d"),
         "clips": len({w.clip for w in windows}),
         "windows": len(windows),
         "seeds": args.seeds,
