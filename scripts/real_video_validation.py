@@ -5,7 +5,8 @@
 :data:`spk2img.evaluation.real_video.REAL_VIDEO_CLIPS` found under ``DATA`` at each speed bin
 (:mod:`spk2img.evaluation.real_video`), once per seed, and writes each method's PSNR/SSIM: over
 all windows, per speed bin, per clip, with the spread over seeds (the standard deviation of the
-overall mean between seeds) and over clips. ``--add`` keeps the methods already in ``--json``
+overall mean between seeds) and over clips; the sections (``## ...``) written below the tables
+in ``--md`` are kept. ``--add`` keeps the methods already in ``--json``
 (scored on the same windows: the same clips and seeds) and scores only the models given.
 """
 
@@ -128,7 +129,14 @@ def main() -> None:
         "methods": results,
     }
     args.json.write_text(json.dumps(data, indent=1) + "\n")
-    args.md.write_text(markdown(data))
+    args.md.write_text(markdown(data) + kept_notes(args.md))
+
+
+def kept_notes(md: Path) -> str:
+    """The written sections (``## ...`` onwards) of an existing ``md``, which the tables above
+    them leave as they are; empty without any."""
+    text = md.read_text() if md.is_file() else ""
+    return text[text.index("\n## ") :] if "\n## " in text else ""
 
 
 if __name__ == "__main__":

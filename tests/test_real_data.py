@@ -1,7 +1,7 @@
 """Real-data behaviour on the real spike-camera capture in ../shared/data/real (dim, static,
-250x250, no ground truth): the shipped network's output is finite and in range, and closer
-than TFP over the same 41 frames to a clean reference, TFP over all 199 frames (the scene is a
-still photograph, so the long window is nearly noise-free)."""
+250x250, no ground truth): each shipped noise-free network's output is finite and in range, and
+closer than TFP over the same 41 frames to a clean reference, TFP over all 199 frames (the
+scene is a still photograph, so the long window is nearly noise-free)."""
 
 from pathlib import Path
 
@@ -10,7 +10,7 @@ import pytest
 
 from spk2img.evaluation.metrics import psnr
 from spk2img.runtime.classical import tfp
-from spk2img.runtime.onnx_backend import OnnxModel
+from spk2img.runtime.onnx_backend import OnnxModel, model_path
 
 CAPTURE = Path(__file__).resolve().parents[2] / "shared/data/real/uhsr_helicopter_250x250.npz"
 
@@ -23,9 +23,10 @@ def spikes():
         return z["spk"]
 
 
-def test_network_on_real_capture_is_finite_and_cleaner_than_tfp(spikes):
+@pytest.mark.parametrize("name", ["default", "cpu"])
+def test_network_on_real_capture_is_finite_and_cleaner_than_tfp(spikes, name):
     reference = tfp(spikes, [100], 199)[0]
-    model = OnnxModel(threads=1)
+    model = OnnxModel(model_path(name), threads=1)
     for k in (40, 100, 160):
         window = spikes[k - 20 : k + 21][None].astype(np.float32)
         image = model(window)[0]
