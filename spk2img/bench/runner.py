@@ -276,8 +276,7 @@ def gpu_run(
         weights["paper"] = work / "gpu-paper.onnx"
     except Exception as exc:  # noqa: BLE001 - its rows report the failure
         log(f"export of paper for the GPU failed: {exc}")
-    stream = work / "gpu-stream.npy"
-    np.save(stream, stream_spikes(scale.stream_frames, scale.height, scale.width))
+    stream = stream_file(scale, work, log)
     threads = max(options.threads)
     result = gpu.gpu_benchmark(
         device, weights, cases_dir, stream, threads, scale.repeats, work, log
@@ -288,6 +287,19 @@ def gpu_run(
             device, shipped.onnx, window, threads, scale.service_requests, log
         )
     return result
+
+
+def stream_file(scale: Scale, work: Path, log: Log) -> Path:
+    """The streaming benchmark's stream (:func:`stream_spikes` at ``scale``) saved in ``work``,
+    simulated on the first call of a run (the streaming and the GPU rows share it)."""
+    path = work / "stream.npy"
+    if not path.is_file():
+        log(
+            f"simulating a {scale.stream_frames}-frame {scale.height}x{scale.width} stream "
+            "(fast motion, real-like sensor)"
+        )
+        np.save(path, stream_spikes(scale.stream_frames, scale.height, scale.width))
+    return path
 
 
 def stream_spikes(frames: int, height: int, width: int) -> np.ndarray:
@@ -336,14 +348,8 @@ def streaming_run(options: BenchOptions, work: Path, log: Log) -> list[dict]:
     is not installed."""
     from spk2img.runtime.onnx_backend import shipped_models
 
-    scale = options.scale
     installed = shipped_models()
-    log(
-        f"simulating a {scale.stream_frames}-frame {scale.height}x{scale.width} stream "
-        "(fast motion, real-like sensor)"
-    )
-    stream = work / "stream.npy"
-    np.save(stream, stream_spikes(scale.stream_frames, scale.height, scale.width))
+    stream = stream_file(options.scale, work, log)
     results = []
     for name in options.stream_models:
         if name not in installed:

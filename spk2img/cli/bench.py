@@ -246,7 +246,7 @@ def _stream_models(text: str) -> tuple[str, ...]:
 
     names = tuple(filter(None, text.split(",")))
     installed = shipped_models()
-    unknown = [name for name in names if name not in installed and text != "default"]
+    unknown = [] if text == "default" else [name for name in names if name not in installed]
     if not names or unknown:
         raise InputError(
             f"--stream-models: no shipped model {', '.join(unknown) or repr(text)} "
