@@ -65,6 +65,12 @@ def test_the_pages_run_under_their_content_security_policy(browser, service):
     assert not [p for p in problems if "Content Security Policy" in p or "Refused" in p], problems
 
 
+def open_viewer(page, url: str) -> None:
+    """Load the viewer and wait until it has heard the service ready (and its model's window)."""
+    page.goto(url)
+    page.wait_for_selector("#service-status:has-text('ready')", timeout=WAIT_MS)
+
+
 @pytest.fixture
 def page(browser, service):
     # the tests' own polling (wait_for_function) evaluates strings, which the page's policy
@@ -75,8 +81,7 @@ def page(browser, service):
     page = context.new_page()
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
-    page.goto(service.url + "/")
-    page.wait_for_selector("#service-status:has-text('ready')", timeout=WAIT_MS)
+    open_viewer(page, service.url + "/")
     yield page
     context.close()
     assert not errors, errors  # no uncaught exception in the page's script
@@ -216,7 +221,7 @@ def test_a_long_plan_is_split_into_requests(browser, service, tmp_path):
     path.write_bytes(BODY)
     context = browser.new_context(bypass_csp=True)  # wait_for_function evaluates strings
     page = context.new_page()
-    page.goto(f"{service.url}/?budget={12 * (28 + H * W)}")
+    open_viewer(page, f"{service.url}/?budget={12 * (28 + H * W)}")
     requests = reconstruct_requests(page)
     choose(page, path, height=str(H), width=str(W), method="tfp", stride="3")
     run_and_wait(page)
@@ -254,13 +259,38 @@ def run_and_expect_refusal(page, service, query: str, fragment: str) -> None:
     assert page.is_enabled("#run")
 
 
+def test_run_before_the_service_answers_says_so_on_the_page(browser, service, tmp_path):
+    """Until ``v1/models`` has answered the page does not know the network's window: Run with
+    method net shows that on the page (no uncaught error, no request), and works once it has."""
+    path = tmp_path / "rec.dat"
+    path.write_bytes(BODY)
+    context = browser.new_context(bypass_csp=True)  # wait_for_function evaluates strings
+    page = context.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    held = []
+    page.route("**/v1/models", lambda route: held.append(route))  # its answer held back
+    page.goto(service.url + "/")
+    queries = reconstruct_requests(page)
+    choose(page, path, height=str(H), width=str(W), method="net", stride="10")
+    page.click("#run")
+    page.wait_for_selector("#error:not([hidden])", timeout=WAIT_MS)
+    assert "has not said its model's window yet" in page.inner_text("#error")
+    assert not queries and not errors
+    held[0].continue_()
+    page.wait_for_selector("#service-status:has-text('ready')", timeout=WAIT_MS)
+    run_and_wait(page)
+    assert len(queries) == 1 and not errors
+    context.close()
+
+
 def test_binning_is_sent_for_net_best_only(page, service, tmp_path):
     """``binning=2`` goes with every request of a split plan (a budget of 5 frames: 12 centres
     of 83-frame windows in 3 requests), and the page shows the frames of one API request; for
     tfp, or quality fast, the field is disabled and no request carries it."""
     path = tmp_path / "rec.dat"
     path.write_bytes(BODY)
-    page.goto(f"{service.url}/?budget={5 * (28 + H * W)}")
+    open_viewer(page, f"{service.url}/?budget={5 * (28 + H * W)}")
     queries = reconstruct_requests(page)
     assert page.is_enabled("#binning") and page.is_visible("#binning-hint")
     choose(page, path, height=str(H), width=str(W), method="net", binning="2", stride="10")

@@ -537,7 +537,14 @@
     state.index = 0;
     state.showB = false;
     state.gamma = settings.gamma;
-    const plans = state.runs.map((run) => planRequests(run, settings, frameCount));
+    let plans;
+    try {
+      plans = state.runs.map((run) => planRequests(run, settings, frameCount));
+    } catch (error) {
+      state.runs = [];
+      showError(error.message);
+      return;
+    }
     resetView();
     state.abort = new AbortController();
     updateButtons();
