@@ -1,4 +1,5 @@
 import importlib.util
+import shutil
 import sys
 from pathlib import Path
 
@@ -24,19 +25,47 @@ def standin_model(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def tiny_checkpoint(tmp_path_factory):
-    """A ``tiny`` checkpoint with random weights (tests/onnx_models.py)."""
-    from onnx_models import write_tiny_checkpoint
+def run_dir(tmp_path_factory, worker_id) -> Path:
+    """A folder all the workers of this test run share (pytest-xdist's workers each have their
+    own base folder inside the run's): what one worker builds there, the others reuse."""
+    base = tmp_path_factory.getbasetemp()
+    return base if worker_id == "master" else base.parent
 
-    return write_tiny_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt")
+
+def built_once(run_dir: Path, name: str, build) -> Path:
+    """The folder ``run_dir / name``, filled by ``build(folder)`` by the first worker that asks
+    for it; the others wait for it and reuse it."""
+    from filelock import FileLock
+
+    folder = run_dir / name
+    with FileLock(str(run_dir / f"{name}.lock")):
+        if not folder.is_dir():
+            partial = run_dir / f"{name}.partial"
+            shutil.rmtree(partial, ignore_errors=True)
+            partial.mkdir()
+            build(partial)
+            partial.rename(folder)
+    return folder
 
 
 @pytest.fixture(scope="session")
-def tiny_export(tiny_checkpoint, tmp_path_factory):
-    """The tiny checkpoint exported with its block graphs, as ``spk2img export`` does."""
+def tiny_checkpoint(run_dir):
+    """A ``tiny`` checkpoint with random weights (tests/onnx_models.py), shared by the run."""
+    from onnx_models import write_tiny_checkpoint
+
+    return built_once(run_dir, "ckpt", lambda d: write_tiny_checkpoint(d / "tiny.pt")) / "tiny.pt"
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tiny_checkpoint, run_dir):
+    """The tiny checkpoint exported with its block graphs, as ``spk2img export`` does (alone in
+    its folder); built once a run (about a minute), shared by the workers."""
     from onnx_models import write_tiny_export
 
-    return write_tiny_export(tiny_checkpoint, tmp_path_factory.mktemp("onnx") / "tiny.onnx")
+    folder = built_once(
+        run_dir, "onnx", lambda d: write_tiny_export(tiny_checkpoint, d / "tiny.onnx")
+    )
+    return folder / "tiny.onnx"
 
 
 @pytest.fixture(scope="session")

@@ -15,7 +15,6 @@ from spk2img import __version__
 from spk2img.cli import main
 from spk2img.errors import InputError
 from spk2img.export import hard_cases
-from spk2img.export.block_graphs import block_parity
 from spk2img.export.metadata import weights_sha256
 from spk2img.export.onnx_export import (
     ExportConfig,
@@ -175,17 +174,6 @@ def test_paper_random_weights_export_and_verify(tmp_path):
     assert OnnxModel(result.path, 1).metadata["weights_sha256"] == weights_sha256(
         source.model.state_dict()
     )
-
-
-def test_the_folded_member_exports_at_any_size_and_streams_its_blocks(tmp_path):
-    """``cpu`` (SALI and features on folded 4x4 patches, a pixel-shuffle head): sizes that are
-    not multiples of its 16 px, and the block graphs streamed against the one-shot network."""
-    source = random_source("cpu", seed=0)
-    result = export_verified(source, tmp_path / "cpu.onnx", EXAMPLE)
-    cases = hard_cases.size_cases(((17, 23), (9, 30)), threads=(1,))
-    report = verify_onnx(result.path, source.model, cases)
-    assert result.parity.passed and report.passed, report.table()
-    assert block_parity(result.path, source.model) <= ATOL
 
 
 def test_onnx_backend_agrees_with_torch_predictor(tiny_export, tiny_checkpoint):
