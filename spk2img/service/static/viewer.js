@@ -531,20 +531,20 @@
     const blob = state.source.blob;
     const frameCount = blob.size % perFrame === 0 ? blob.size / perFrame : null;
     const compare = ui.compare.value;
-    state.runs = [newRun(ui.method.value, ui.quality.value, "A", settings.binning)];
-    if (compare) state.runs.push(newRun(compare, "best", "B"));
-    state.runs.forEach((run) => { run.settings = settings; });
+    const runs = [newRun(ui.method.value, ui.quality.value, "A", settings.binning)];
+    if (compare) runs.push(newRun(compare, "best", "B"));
+    runs.forEach((run) => { run.settings = settings; });
+    let plans;
+    try {
+      plans = runs.map((run) => planRequests(run, settings, frameCount));
+    } catch (error) {
+      showError(error.message); // e.g. the service has not said its model's window yet
+      return;
+    }
+    state.runs = runs;
     state.index = 0;
     state.showB = false;
     state.gamma = settings.gamma;
-    let plans;
-    try {
-      plans = state.runs.map((run) => planRequests(run, settings, frameCount));
-    } catch (error) {
-      state.runs = [];
-      showError(error.message);
-      return;
-    }
     resetView();
     state.abort = new AbortController();
     updateButtons();
