@@ -44,7 +44,7 @@ def held_out_dir(tmp_path_factory) -> Path:
 def quick_run(tmp_path_factory, held_out_dir):
     out = tmp_path_factory.mktemp("bench")
     args = ["bench", "--quick", "--out-dir", str(out), "--data", str(held_out_dir)]
-    assert main([*args, "--stream-models", "default,tiny"]) == 0
+    assert main([*args, "--stream-models", "cpu,tiny"]) == 0
     return out, json.loads((out / "bench.json").read_text()), (out / "bench.md").read_text()
 
 
@@ -128,7 +128,7 @@ def test_quick_streaming_section(quick_run):
     out, results, text = quick_run
     streaming = json.loads((out / "bench_streaming.json").read_text())
     assert streaming["streaming"] == results["streaming"]
-    assert [s["model"] for s in results["streaming"]] == ["spk2img-default", "spk2img-tiny"]
+    assert [s["model"] for s in results["streaming"]] == ["spk2img-cpu", "spk2img-tiny"]
     rows = []
     for s in results["streaming"]:
         assert s["stride"] == 7 and s["frames"] == 90 and 0 < s["mac_ratio"] < 1

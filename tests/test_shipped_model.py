@@ -1,8 +1,10 @@
-"""The shipped default model end to end: its ONNX graph verifies against its checkpoint, the
-README's main command runs on the shipped sample stream, and the ONNX backend, the torch
-backend and the HTTP service give the same frames."""
+"""The shipped models: each graph holds its checkpoint's weights; the default verifies against
+its checkpoint, the README's main command runs on the shipped sample stream, and the ONNX
+backend, the torch backend and the HTTP service give the same frames; the folded ``cpu``
+verifies at sizes off its multiple and its block graphs stream like its network."""
 
 import json
+import shlex
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +12,9 @@ from service_support import run_server
 
 from spk2img.cli import main
 from spk2img.export import hard_cases
+from spk2img.export.block_graphs import block_parity
 from spk2img.export.metadata import weights_sha256
-from spk2img.export.verify import verify_onnx
+from spk2img.export.verify import ATOL, verify_onnx
 from spk2img.model.checkpoint import load_checkpoint, load_model
 from spk2img.runtime.onnx_backend import (
     OnnxModel,
@@ -21,7 +24,8 @@ from spk2img.runtime.onnx_backend import (
 )
 from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
 
-SAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fast_motion_250x400.dat"
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "examples" / "fast_motion_250x400.dat"
 CENTERS = "20,97"
 
 
@@ -36,11 +40,23 @@ def test_shipped_onnx_is_the_shipped_checkpoint_and_verifies():
     assert report.passed and len(report.results) == 7, report.table()
 
 
+def test_the_shipped_folded_member_verifies_off_its_multiple_and_streams_its_blocks():
+    """``cpu`` folds 2x2 patches into channels and pads to a multiple of 16 px: its graph
+    against its checkpoint at sizes that are not multiples (nor of the fold), and its block
+    graphs streamed against the network on whole windows."""
+    path = shipped_models()["cpu"]
+    model = load_model(path.with_suffix(".pt"))
+    assert model.config.sali_stride == 2 and model.config.size_multiple == 16
+    report = verify_onnx(path, model, hard_cases.size_cases(((17, 23), (9, 30)), threads=(1,)))
+    assert report.passed, report.table()
+    assert block_parity(path, model) <= ATOL
+
+
 def test_every_shipped_model_is_its_checkpoint_with_its_block_graphs():
     """Each ``spk2img-<name>.onnx`` (the names ``--model`` takes), its encoder and head graphs
     and the ``.pt`` beside it hold the same weights, and its card exists."""
     assert {"default", "real"} <= set(shipped_models())
-    docs = Path(__file__).resolve().parents[1] / "docs"
+    docs = ROOT / "docs"
     for name, path in shipped_models().items():
         weights = weights_sha256(load_checkpoint(path.with_suffix(".pt"))["model"])
         for graph in (path, path.with_suffix(".encoder.onnx"), path.with_suffix(".head.onnx")):
@@ -50,12 +66,22 @@ def test_every_shipped_model_is_its_checkpoint_with_its_block_graphs():
         assert f"spk2img/assets/models/spk2img-{name}.onnx" in (docs / card).read_text()
 
 
-def test_readme_command_and_backends_and_service_agree(tmp_path):
-    """README's command (every 7th centre, each block encoded once) on the sample stream; the
+def readme_command() -> list[str]:
+    """README's main command (the line that starts ``spk2img reconstruct``), without
+    ``spk2img``."""
+    readme = (ROOT / "README.md").read_text().splitlines()
+    return shlex.split(next(line for line in readme if line.startswith("spk2img reconstruct ")))[1:]
+
+
+def test_readme_command_and_backends_and_service_agree(tmp_path, monkeypatch):
+    """README's command as written (every 7th centre, each block encoded once; run in a
+    folder of its own, the sample stream found in the checkout) on the sample stream; the
     torch backend and the service, on whole windows at two of its centres, give its frames."""
-    png_dir, readme_out = tmp_path / "png", tmp_path / "r.npz"
-    readme = ["reconstruct", str(SAMPLE), "--out", str(readme_out), "--png-dir", str(png_dir)]
-    assert main([*readme, "--stride", "7", "--no-progress"]) == 0
+    command = readme_command()
+    assert command[1] == "examples/fast_motion_250x400.dat"
+    monkeypatch.chdir(tmp_path)
+    assert main([command[0], str(SAMPLE), *command[2:], "--no-progress"]) == 0
+    readme_out, png_dir = tmp_path / "out" / "frames.npz", tmp_path / "out" / "png"
     ran = np.load(readme_out)
     assert ran["centers"].tolist() == list(range(20, 98, 7))
     assert len(list(png_dir.glob("*.png"))) == 12

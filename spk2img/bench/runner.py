@@ -67,10 +67,10 @@ FULL = Scale(
     stream_frames=1000,
 )
 QUICK = Scale(
+    48,
     64,
-    96,
     per_class=2,
-    repeats=3,
+    repeats=2,
     members=("tiny",),
     service_requests=8,
     stream_frames=90,
