@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import onnx
+import onnxruntime as ort
 import pytest
 import torch
 from onnx_models import EXPORT_EXAMPLE_SIZE, TINY_TRAIN_COMMIT
@@ -24,11 +25,17 @@ from spk2img.export.onnx_export import (
     one_shot_io,
     operator_counts,
     random_source,
+    rewrite_weights,
 )
 from spk2img.export.pipeline import export_verified
 from spk2img.export.quantize import MIN_PSNR_VS_FP32, precision_report, reduce_precision
 from spk2img.export.verify import ATOL, reference_model, verify_onnx
-from spk2img.model.checkpoint import config_to_dict, load_checkpoint, save_checkpoint
+from spk2img.model.checkpoint import (
+    config_to_dict,
+    load_checkpoint,
+    load_model,
+    save_checkpoint,
+)
 from spk2img.runtime.block_codec import block_graph_paths
 from spk2img.runtime.onnx_backend import OnnxModel
 from spk2img.runtime.torch_backend import TorchPredictor
@@ -149,6 +156,33 @@ def test_verify_finds_its_weights_and_refuses_others(tiny_export, tiny_checkpoin
     # a mismatch the verifier must catch: the graph against a different network
     report = verify_onnx(tiny_export, other, hard_cases.size_cases(((17, 23),), threads=(1,)))
     assert not report.passed and "FAIL" in report.table()
+
+
+def test_rewritten_weights_give_the_graph_of_the_changed_network(tiny_export, tiny_checkpoint):
+    """The far-offset variant that verify checks: the tiny graph with the variant's offset
+    predictors written over its own runs as the variant does in torch (every tap about 1e5 px
+    outside the image), where the graph as exported does not; a weight the graph does not hold by
+    its name and shape leaves it untouched."""
+    model = load_model(tiny_checkpoint)
+    far = hard_cases.far_offset_copy(model)
+    own = model.state_dict()
+    changed = {k: v for k, v in far.state_dict().items() if not torch.equal(v, own[k])}
+    assert changed and all("conv_offset_mask" in k for k in changed)
+    graph = onnx.load(tiny_export)
+    assert rewrite_weights(graph, changed)
+    windows = hard_cases.scene_cases()[0].spikes
+    session = ort.InferenceSession(graph.SerializeToString(), providers=["CPUExecutionProvider"])
+    rewritten = session.run(None, {"spikes": windows})[0][:, 0]
+    with torch.inference_mode():
+        expected = far(torch.from_numpy(windows))[0][:, 0].numpy()
+    assert np.abs(rewritten - expected).max() <= ATOL
+    unchanged = OnnxModel(tiny_export, 1)(windows)
+    assert np.abs(unchanged - expected).max() > 10 * ATOL  # the graph as exported fails it
+    before = graph.SerializeToString()
+    key = next(iter(changed))
+    assert not rewrite_weights(graph, {key: changed[key][:1], "nope": torch.zeros(1)})
+    assert not rewrite_weights(graph, {key: changed[key].double()})
+    assert graph.SerializeToString() == before
 
 
 def test_deform_conv_graph_matches_grid_sample_graph(tiny_export, tiny_checkpoint, tmp_path):

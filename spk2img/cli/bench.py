@@ -34,7 +34,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--quick",
         action="store_true",
-        help="CI smoke run: 64x96 frames, 3 repeats, the tiny member only, a short "
+        help="CI smoke run: 48x64 frames, 2 repeats, the tiny member only, a short "
         "service run (under 2 minutes on 2 cores)",
     )
     where = p.add_mutually_exclusive_group()
@@ -49,7 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help=f"write them into {DOCS_DIR}/, replacing the committed results",
     )
     p.add_argument("--threads", default="1,2", help="thread counts to time, e.g. 1,2 (default)")
-    p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 3)")
+    p.add_argument("--repeats", type=int, help="timed calls per row (default 5; --quick: 2)")
     p.add_argument(
         "--members",
         help="family members with random weights (default: every member, paper,small,lite,cpu,"

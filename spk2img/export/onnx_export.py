@@ -21,6 +21,7 @@ from pathlib import Path
 
 import onnx
 import torch
+from onnx import helper, numpy_helper
 from torch import nn
 
 from spk2img.errors import InputError
@@ -83,7 +84,8 @@ class ExportSource:
 
 
 class ImageOnly(nn.Module):
-    """The network's ``image`` output alone (the SALI estimates are for training)."""
+    """The network's ``image`` output alone (the SALI estimates are for training). The one-shot
+    graph's weights are named after it: ``model.`` and the network's state-dict key."""
 
     def __init__(self, model: Spk2ImgNet) -> None:
         super().__init__()
@@ -140,6 +142,25 @@ def random_source(
     metadata = model_metadata(model, name or f"spk2img-{label}-random", label, source, None)
     metadata["random_seed"] = str(seed)
     return ExportSource(model.eval(), metadata)
+
+
+def rewrite_weights(model: onnx.ModelProto, weights: dict[str, torch.Tensor]) -> bool:
+    """Write ``weights`` (state-dict key -> tensor) over the one-shot graph ``model``'s
+    initializers of the same names, in place: the graph that exporting the network with these
+    weights changed would give (tracing does not depend on the weights' values), without
+    tracing again. Returns False, the graph untouched, where a key has no initializer of its
+    shape and type (a graph whose optimiser folded that weight into another constant)."""
+    initializers = {init.name: init for init in model.graph.initializer}
+    arrays = {f"model.{key}": tensor.detach().cpu().numpy() for key, tensor in weights.items()}
+    for name, array in arrays.items():
+        init = initializers.get(name)
+        if init is None or tuple(init.dims) != array.shape:
+            return False
+        if helper.tensor_dtype_to_np_dtype(init.data_type) != array.dtype:
+            return False
+    for name, array in arrays.items():
+        initializers[name].CopyFrom(numpy_helper.from_array(array, name))
+    return True
 
 
 def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> onnx.ModelProto:
@@ -252,9 +273,7 @@ def finish_graph(
     """Add ``metadata`` (and the graph kind and opset) to ``model``, :func:`check_graph` it
     against ``expected_io`` and write it to ``out``; returns it."""
     out = Path(out)
-    onnx.helper.set_model_props(
-        model, {**metadata, "graph": config.graph, "opset": str(config.opset)}
-    )
+    helper.set_model_props(model, {**metadata, "graph": config.graph, "opset": str(config.opset)})
     check_graph(model, expected_io)
     out.parent.mkdir(parents=True, exist_ok=True)
     onnx.save_model(model, out, save_as_external_data=False)

@@ -46,6 +46,7 @@ from .onnx_export import (
     export_onnx,
     graph_kind,
     random_source,
+    rewrite_weights,
 )
 from .quantize import MIN_PSNR_VS_FP32, reduce_block_graphs, reduce_precision
 
@@ -185,8 +186,9 @@ def verify_onnx(
     """Run ``model`` (the exported network, eval mode) and the graph at ``onnx_path`` on every
     case and compare their outputs; ``progress`` is called with each result as it comes.
 
-    Cases with a ``variant`` run a modified copy of ``model`` against a graph exported from that
-    copy the same way (same graph kind, and precision) into a temporary directory. With
+    Cases with a ``variant`` run a modified copy of ``model`` against the same graph with the
+    copy's weights (an fp32 graph's changed weights rewritten; any other graph exported afresh
+    from the copy the same way: same graph kind, and precision) in a temporary directory. With
     ``fp16`` (an fp32 graph only) every case also runs the graph converted to fp16
     (:func:`~spk2img.export.quantize.reduce_precision`). ``device``: where onnxruntime runs;
     off the CPU and for reduced precision only the case's first thread count runs.
@@ -211,7 +213,9 @@ def verify_onnx(
 
         for case in cases:
             if case.variant not in variants:
-                variants[case.variant] = _export_variant(model, case.variant, kind, Path(tmp))
+                variants[case.variant] = _variant_graph(
+                    model, case.variant, onnx_path, kind, Path(tmp)
+                )
                 graphs[case.variant, "fp32"] = variants[case.variant][1]
             net = variants[case.variant][0]
             spikes = np.ascontiguousarray(net.config.geometry.crop(case.spikes, axis=1))
@@ -297,12 +301,25 @@ def verify_block_graphs(
     )
 
 
-def _export_variant(
-    model: Spk2ImgNet, variant: str, kind: str, directory: Path
+def _variant_graph(
+    model: Spk2ImgNet, variant: str, onnx_path: Path, kind: str, directory: Path
 ) -> tuple[Spk2ImgNet, Path]:
+    """The network ``variant`` of ``model`` and its graph in ``directory``: an fp32 graph under
+    test with the variant's changed weights written over its own
+    (:func:`~spk2img.export.onnx_export.rewrite_weights`), any other exported afresh."""
     if variant != "far offsets":
         raise ValueError(f"unknown model variant {variant!r}")
     far = far_offset_copy(model)
     path = directory / "far-offsets.onnx"
-    export_onnx(ExportSource(far, {"name": "far-offsets variant"}), path, ExportConfig(graph=kind))
+    own = model.state_dict()
+    changed = {k: v for k, v in far.state_dict().items() if not torch.equal(v, own[k])}
+    graph = onnx.load(onnx_path)
+    if graph_precision(graph) == "fp32" and rewrite_weights(graph, changed):
+        props = {p.key: p.value for p in graph.metadata_props if p.key != "weights_sha256"}
+        del graph.metadata_props[:]
+        onnx.helper.set_model_props(graph, props | {"name": "far-offsets variant"})
+        onnx.save_model(graph, path)
+    else:
+        source = ExportSource(far, {"name": "far-offsets variant"})
+        export_onnx(source, path, ExportConfig(graph=kind))
     return far, path
