@@ -15,6 +15,25 @@ SERVICE_LIMITS = tuple(
 )
 """The limits of the shared test service (small, so that the limit tests stay cheap)."""
 
+LONGEST_FIRST = (
+    "test_export.py",
+    "test_bench.py",
+    "test_training.py",
+    "test_shipped_model.py",
+    "test_docs_examples.py",
+    "test_natural_data.py",
+    "test_model_geometry.py",
+)
+"""The test files that take a minute or more on 2 cores, longest first. ``--dist loadfile``
+hands the workers whole files in collection order: these go first, so that the short files fill
+in at the end (one long file last keeps one worker busy while the other waits)."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Run :data:`LONGEST_FIRST` first, in its order; every other file keeps its place."""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
 
 @pytest.fixture(scope="session")
 def standin_model(tmp_path_factory):
