@@ -214,7 +214,7 @@ def verify_onnx(
         for case in cases:
             if case.variant not in variants:
                 variants[case.variant] = _variant_graph(
-                    model, case.variant, onnx_path, kind, Path(tmp)
+                    model, case.variant, onnx_path, kind, own, Path(tmp)
                 )
                 graphs[case.variant, "fp32"] = variants[case.variant][1]
             net = variants[case.variant][0]
@@ -302,19 +302,20 @@ def verify_block_graphs(
 
 
 def _variant_graph(
-    model: Spk2ImgNet, variant: str, onnx_path: Path, kind: str, directory: Path
+    model: Spk2ImgNet, variant: str, onnx_path: Path, kind: str, precision: str, directory: Path
 ) -> tuple[Spk2ImgNet, Path]:
-    """The network ``variant`` of ``model`` and its graph in ``directory``: an fp32 graph under
-    test with the variant's changed weights written over its own
-    (:func:`~spk2img.export.onnx_export.rewrite_weights`), any other exported afresh."""
+    """The network ``variant`` of ``model`` and its graph in ``directory``: the graph under test
+    (of graph kind ``kind`` and ``precision``), if fp32, with the variant's changed weights
+    written over its own (:func:`~spk2img.export.onnx_export.rewrite_weights`); any other
+    exported afresh."""
     if variant != "far offsets":
         raise ValueError(f"unknown model variant {variant!r}")
     far = far_offset_copy(model)
     path = directory / "far-offsets.onnx"
     own = model.state_dict()
     changed = {k: v for k, v in far.state_dict().items() if not torch.equal(v, own[k])}
-    graph = onnx.load(onnx_path)
-    if graph_precision(graph) == "fp32" and rewrite_weights(graph, changed):
+    graph = onnx.load(onnx_path) if precision == "fp32" else None
+    if graph is not None and rewrite_weights(graph, changed):
         props = {p.key: p.value for p in graph.metadata_props if p.key != "weights_sha256"}
         del graph.metadata_props[:]
         onnx.helper.set_model_props(graph, props | {"name": "far-offsets variant"})
