@@ -17,7 +17,7 @@ from PIL import Image
 from spk2img.bench.cases import SCENE_CLASSES, benchmark_set
 from spk2img.bench.natural import natural_set
 from spk2img.bench.profile import summarise, top_operators
-from spk2img.bench.rows import BACKENDS, NetRow, TfiRow, TfpRow, row_from_json, row_to_json
+from spk2img.bench.rows import NetRow, TfiRow, TfpRow, row_from_json, row_to_json
 from spk2img.bench.runner import QUICK
 from spk2img.bench.scores import best_tfp_window, quality
 from spk2img.bench.worker import peak_rss_mib
@@ -60,7 +60,7 @@ def test_quick_run_has_every_row_and_finite_numbers(quick_run):
     assert any(label.startswith("TFP-41") for label, _ in rows)
     assert any("best single window" in label for label, _ in rows)
     tiny = {r["backend"]: r for r in results["rows"] if r["weights"] == "tiny"}
-    assert set(tiny) == set(BACKENDS)
+    assert set(tiny) == set(QUICK.member_backends)
     for row in results["rows"]:
         if row["kind"] != "net" or row["backend"] in ("torch", "onnx"):
             assert row["error"] is None, row
