@@ -408,6 +408,17 @@ def test_the_cpu_member_reads_each_block_of_the_window_folded():
         torch.testing.assert_close(seen[0][block], weighted)
 
 
+@given(h=st.integers(1, 40), w=st.integers(1, 40), multiple=st.sampled_from([1, 2, 4, 8, 16]))
+def test_padding_reaches_the_next_multiple_by_replicating_the_last_row_and_column(h, w, multiple):
+    x = torch.arange(h * w, dtype=torch.float32).view(1, 1, h, w)
+    padded = pad_to_multiple(x, multiple)
+    hp, wp = padded.shape[-2:]
+    assert hp % multiple == wp % multiple == 0 and h <= hp < h + multiple and w <= wp < w + multiple
+    assert torch.equal(padded[..., :h, :w], x)
+    assert torch.equal(padded[..., h:, :w], x[..., -1:, :].expand(-1, -1, hp - h, -1))
+    assert torch.equal(padded[..., :, w:], padded[..., :, w - 1 : w].expand(-1, -1, -1, wp - w))
+
+
 def test_paper_forward_on_a_small_window():
     model = build_model("paper").eval()
     spikes = (torch.rand(1, 41, 24, 36, generator=torch.Generator().manual_seed(1)) < 0.3).float()
