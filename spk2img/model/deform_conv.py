@@ -51,18 +51,19 @@ def modulated_deform_conv2d(
     taps = kh * kw
     h_out, w_out = offset.shape[-2:]
 
-    # sampling positions in input pixels, (b, groups, K, h_out, w_out) each
+    # sampling positions in input pixels, (b, groups * K, h_out, w_out) each: channel
+    # g * K + k is tap k of group g, as in the mask (every tensor stays 4-D: the symbolic
+    # shapes of the export stay few)
     tap_y = torch.arange(kh, dtype=x.dtype, device=x.device) * dilation - padding
     tap_x = torch.arange(kw, dtype=x.dtype, device=x.device) * dilation - padding
-    tap_y = tap_y.repeat_interleave(kw).view(1, 1, taps, 1, 1)  # i of k = i * kw + j
-    tap_x = tap_x.repeat(kh).view(1, 1, taps, 1, 1)  # j of k = i * kw + j
-    rows = torch.arange(h_out, dtype=x.dtype, device=x.device).view(1, 1, 1, -1, 1)
-    cols = torch.arange(w_out, dtype=x.dtype, device=x.device).view(1, 1, 1, 1, -1)
-    offset = offset.reshape(b, groups, taps, 2, h_out, w_out)
-    sample_y = rows + tap_y + offset[:, :, :, 0]
-    sample_x = cols + tap_x + offset[:, :, :, 1]
+    tap_y = tap_y.repeat_interleave(kw).repeat(groups).view(1, -1, 1, 1)  # i of k = i * kw + j
+    tap_x = tap_x.repeat(kh * groups).view(1, -1, 1, 1)  # j of k = i * kw + j
+    rows = torch.arange(h_out, dtype=x.dtype, device=x.device).view(1, 1, -1, 1)
+    cols = torch.arange(w_out, dtype=x.dtype, device=x.device).view(1, 1, 1, -1)
+    sample_y = offset[:, 0::2] + (rows + tap_y)
+    sample_x = offset[:, 1::2] + (cols + tap_x)
 
-    grid = sampling_grid(sample_y, sample_x, h, w).view(b * groups, taps * h_out, w_out, 2)
+    grid = sampling_grid(sample_y, sample_x, h, w).reshape(b * groups, taps * h_out, w_out, 2)
     sampled = F.grid_sample(
         x.reshape(b * groups, c_in // groups, h, w),
         grid,
@@ -70,8 +71,7 @@ def modulated_deform_conv2d(
         padding_mode="zeros",
         align_corners=False,
     )  # (b * groups, c_in / groups, K * h_out, w_out)
-    sampled = sampled.view(b, groups, c_in // groups, taps, h_out, w_out)
-    sampled = sampled * mask.reshape(b, groups, 1, taps, h_out, w_out)
+    sampled = sampled * mask.reshape(b * groups, 1, taps * h_out, w_out)
 
     # channel order (c_in, K) matches weight.reshape(c_out, c_in * K)
     columns = sampled.reshape(b, c_in * taps, h_out, w_out)
