@@ -27,6 +27,7 @@ from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "examples" / "fast_motion_250x400.dat"
 CENTERS = "20,97"
+LAST = CENTERS.rsplit(",", 1)[1]
 
 
 def test_shipped_onnx_is_the_shipped_checkpoint_and_verifies():
@@ -89,7 +90,7 @@ def test_readme_command_and_backends_and_service_agree(tmp_path, monkeypatch):
     frames = ran["frames"][[0, -1]]  # centres 20 and 97
     assert frames.shape == (2, 250, 400) and np.isfinite(frames).all()
     outs = {"torch": tmp_path / "torch.npz", "remote": tmp_path / "remote.npz"}
-    args = ["reconstruct", str(SAMPLE), "--out", str(outs["torch"]), "--centers", "97"]
+    args = ["reconstruct", str(SAMPLE), "--out", str(outs["torch"]), "--centers", LAST]
     assert main([*args, "--no-progress", "--backend", "torch"]) == 0
     with run_server(default_model_path(), "--threads", "2") as server:
         args = ["reconstruct", str(SAMPLE), "--out", str(outs["remote"]), "--centers", CENTERS]

@@ -371,13 +371,13 @@ def plan_rows(options: BenchOptions, cases: BenchSet, work: Path, log: Log) -> P
     if best == tfp_rows[0].window:
         tfp_rows = [TfpRow(best, "also the best single window")]
     items: list[Row | dict] = [*tfp_rows, TfiRow()]
-    weights = [artifacts.random_member(m, work) for m in options.scale.members]
+    scale = options.scale
+    weights = [artifacts.random_member(m, work) for m in scale.members]
     if (default := artifacts.shipped()) is not None:
         weights.append(default)
     else:
         log("the shipped model is not installed: no shipped rows")
     weights += [artifacts.Weights(name, path, trained=True) for name, path in options.trained]
-    scale = options.scale
     for w in weights:
         log(f"exporting {w.name}")
         backends = scale.trained_backends if w.trained else scale.member_backends
