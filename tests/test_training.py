@@ -145,6 +145,10 @@ def test_resume_continues_the_same_loss_curve(tmp_path, synthesis):
     b = [r["loss"] for r in _records(resumed, "train")]
     assert len(a) == len(b) == 6
     np.testing.assert_allclose(a, b, rtol=1e-5)
+    starts = _records(resumed, "run")  # one at each (re)start, with what trains
+    assert [r["step"] for r in starts] == [0, 3]
+    assert all(r["train_config"]["batch_size"] == 2 and r["member"] == "tiny" for r in starts)
+    assert all("CPU" in r["hardware"] and r["init_from"] is None for r in starts)
     state_a = load_checkpoint(straight / "last.pt")["model"]
     state_b = load_checkpoint(resumed / "last.pt")["model"]
     for name in state_a:
@@ -177,6 +181,7 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
     state = load_checkpoint(tuned / "last.pt")
     assert state["step"] == 2 and state["init_from"]["step"] == 3
     assert state["init_from"]["path"] == str(source / "last.pt")
+    assert _records(tuned, "run")[0]["init_from"] == state["init_from"]
     small = TINY_RUN | {"member": "small", "run_dir": str(tmp_path / "x")}
     with pytest.raises(InputError, match="another shape"):
         train(TrainConfig(steps=1, init=str(source / "last.pt"), **small))

@@ -163,6 +163,15 @@ def train(cfg: TrainConfig) -> dict:
     log = _Log(run_dir / "metrics.jsonl") if run.main else None
     val_sets = {}
     if run.main:
+        log.write(
+            kind="run",
+            step=start,
+            member=cfg.member,
+            train_config=dataclasses.asdict(cfg),
+            hardware=describe_hardware(device, cfg.threads),
+            commit=commit,
+            init_from=init_from,
+        )
         val_sets["natural"] = natural_validation_set(cfg.data) if cfg.data else []
         val_sets["procedural"] = validation_set(cfg.val_per_class)
         real_video = real_video_set(cfg.data, seeds=1, size=REAL_VIDEO_VAL_SIZE) if cfg.data else []

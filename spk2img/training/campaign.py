@@ -1,0 +1,149 @@
+"""The training campaign: every run's settings, samples, optimiser time and validation curve.
+
+Read from the runs' metrics logs (``training_state/NAME/metrics.jsonl``) and the campaign file
+(``training_state/campaign.json``), which says what each run started from (``init``: a run and
+its step, or ``null`` for a run from scratch) and, for runs logged before the ``run`` record
+existed, their settings (member, batch, patch, hardware). A run started since logs those
+itself, as a ``run`` record at every (re)start.
+
+A run's samples are its steps times its batch; its time is the optimiser's (``wall_s``, the
+training steps alone: validation and checkpoints left out). A lineage is a run with the runs it
+started from: its samples before a run are the samples of its ancestors up to the step each
+child started from.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+from spk2img.errors import InputError
+
+CAMPAIGN_FILE = "campaign.json"
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """What trained a run: the family ``member``, windows per step, patch side (px), hardware."""
+
+    member: str
+    batch_size: int
+    patch: int
+    hardware: str
+
+
+@dataclass(frozen=True)
+class Validation:
+    """One validation of a run at ``step``: PSNR (dB) on the natural validation's noise-free and
+    fitted-sensor regimes and on the real-video crops (``None`` where the run did not measure
+    it)."""
+
+    step: int
+    natural_ideal: float | None
+    natural_fitted: float | None
+    real_video: float | None
+
+
+@dataclass(frozen=True)
+class Run:
+    """One training run: its settings, when it started (Unix time of its first record), what it
+    started from (``(run, step)`` or ``None``), the steps it reached, its optimiser time (s),
+    its validations and what shipped from it."""
+
+    name: str
+    settings: RunSettings
+    started: float
+    init: tuple[str, int] | None
+    steps: int
+    wall_s: float
+    validations: tuple[Validation, ...]
+    shipped: str | None = None
+
+    @property
+    def samples(self) -> int:
+        """Training windows seen: steps x batch."""
+        return self.steps * self.settings.batch_size
+
+    @property
+    def samples_per_s(self) -> float:
+        """Windows per second of optimiser time (0 for a run without a logged step)."""
+        return self.samples / self.wall_s if self.wall_s else 0.0
+
+
+def read_run(name: str, records: list[dict], entry: dict) -> Run:
+    """The :class:`Run` ``name`` from its metrics ``records`` (``metrics.jsonl``, in order) and
+    its ``entry`` of the campaign file; settings from its first ``run`` record, else from the
+    entry (an input error where neither has them)."""
+    logged = next((r for r in records if r["kind"] == "run"), None)
+    if logged is not None:
+        tc = logged["train_config"]
+        settings = RunSettings(tc["member"], tc["batch_size"], tc["patch"], logged["hardware"])
+    elif "settings" in entry:
+        settings = RunSettings(**entry["settings"])
+    else:
+        raise InputError(f"run {name}: no run record in its log and no settings in {CAMPAIGN_FILE}")
+    trained = [r for r in records if r["kind"] == "train"]
+    validations = tuple(
+        Validation(
+            r["step"],
+            r.get("natural", {}).get("psnr_ideal"),
+            r.get("natural", {}).get("psnr_fitted"),
+            r.get("real_video", {}).get("psnr"),
+        )
+        for r in records
+        if r["kind"] == "val"
+    )
+    init = entry.get("init")
+    return Run(
+        name=name,
+        settings=settings,
+        started=next((r["time"] for r in records if "time" in r), 0.0),
+        init=(init["run"], int(init["step"])) if init else None,
+        steps=trained[-1]["step"] if trained else 0,
+        wall_s=trained[-1]["wall_s"] if trained else 0.0,
+        validations=validations,
+        shipped=entry.get("shipped"),
+    )
+
+
+def load_campaign(state_dir: Path) -> dict[str, Run]:
+    """Every run of ``state_dir`` (a folder holding ``campaign.json`` and one folder with a
+    ``metrics.jsonl`` per run), by name; an input error for a run folder missing from the
+    campaign file, an entry without a log, or an ``init`` naming no run."""
+    entries = json.loads((state_dir / CAMPAIGN_FILE).read_text())["runs"]
+    logs = {p.parent.name: p for p in sorted(state_dir.glob("*/metrics.jsonl"))}
+    missing = sorted(set(logs) - set(entries))
+    if missing:
+        raise InputError(f"{CAMPAIGN_FILE} has no entry for {', '.join(missing)}")
+    unlogged = sorted(set(entries) - set(logs))
+    if unlogged:
+        raise InputError(f"{CAMPAIGN_FILE} lists runs without a metrics log: {', '.join(unlogged)}")
+    runs = {}
+    for name, path in logs.items():
+        records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+        runs[name] = read_run(name, records, entries[name])
+    for run in runs.values():
+        if run.init and run.init[0] not in runs:
+            raise InputError(f"run {run.name} starts from {run.init[0]}, which is not a run")
+    return runs
+
+
+def lineage(runs: dict[str, Run], name: str) -> list[str]:
+    """``name`` and the runs it started from, the first (from scratch) first."""
+    chain = [name]
+    while (init := runs[chain[-1]].init) is not None:
+        if init[0] in chain:
+            raise InputError(f"runs {' -> '.join(chain)} start from each other in a circle")
+        chain.append(init[0])
+    return chain[::-1]
+
+
+def samples_before(runs: dict[str, Run], name: str) -> int:
+    """Training windows the network of run ``name`` had seen before its step 0: its ancestors'
+    steps up to where each child started, times their batch."""
+    chain = lineage(runs, name)
+    total = 0
+    for parent, child in zip(chain, chain[1:], strict=False):
+        total += runs[child].init[1] * runs[parent].settings.batch_size
+    return total

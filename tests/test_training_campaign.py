@@ -1,0 +1,132 @@
+import json
+from pathlib import Path
+
+import pytest
+
+from spk2img.errors import InputError
+from spk2img.runtime.onnx_backend import graph_metadata, shipped_models
+from spk2img.training.campaign import lineage, load_campaign, samples_before
+
+REPO = Path(__file__).resolve().parents[1]
+CPU = "a 2-core x86_64 CPU, 1 torch thread(s)"
+
+
+def _write(state: Path, runs: dict[str, list[dict]], entries: dict) -> None:
+    """A campaign folder: one metrics log per run and the campaign file."""
+    state.mkdir(exist_ok=True)
+    for name, records in runs.items():
+        (state / name).mkdir()
+        lines = [json.dumps(r | {"time": 1000.0 + i}) for i, r in enumerate(records)]
+        (state / name / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    (state / "campaign.json").write_text(json.dumps({"runs": entries}))
+
+
+def _train(step, wall_s):
+    return {"kind": "train", "step": step, "wall_s": wall_s, "loss": 0.1}
+
+
+def _val(step, ideal=None, real_video=None):
+    record = {"kind": "val", "step": step, "psnr": 30.0}
+    if ideal is not None:
+        record["natural"] = {"psnr_ideal": ideal, "psnr_fitted": ideal - 8}
+    if real_video is not None:
+        record["real_video"] = {"psnr": real_video}
+    return record
+
+
+def _run_record(step, batch_size, patch=64):
+    config = {"member": "tiny", "batch_size": batch_size, "patch": patch}
+    return {"kind": "run", "step": step, "train_config": config, "hardware": CPU}
+
+
+@pytest.fixture
+def campaign(tmp_path):
+    """root (settings in the campaign file, batch 8) -> child (its own run record, batch 16;
+    resumed once) -> grandchild (batch 4)."""
+    runs = {
+        "root": [_train(100, 50.0), _val(100, ideal=30.0), _train(200, 100.0), _val(200, 31.0)],
+        "child": [
+            _run_record(0, 16),
+            _train(30, 20.0),
+            _run_record(30, 16),  # resumed: the steps and wall time go on
+            _train(60, 40.0),
+            _val(60, ideal=32.0, real_video=28.0),
+        ],
+        "grandchild": [_run_record(0, 4, patch=32), _train(10, 1.0)],
+    }
+    entries = {
+        "root": {
+            "init": None,
+            "settings": {"member": "tiny", "batch_size": 8, "patch": 48, "hardware": CPU},
+        },
+        "child": {"init": {"run": "root", "step": 150}, "shipped": "tiny"},
+        "grandchild": {"init": {"run": "child", "step": 50}},
+    }
+    _write(tmp_path, runs, entries)
+    return tmp_path
+
+
+def test_runs_count_their_steps_windows_and_optimiser_time(campaign):
+    runs = load_campaign(campaign)
+    root, child, grandchild = runs["root"], runs["child"], runs["grandchild"]
+    assert (root.steps, root.samples, root.wall_s) == (200, 1600, 100.0)
+    assert root.samples_per_s == pytest.approx(16.0)
+    # a resumed run: its last train record holds the steps and the optimiser time in all
+    assert (child.steps, child.samples, child.wall_s) == (60, 960, 40.0)
+    assert child.settings.batch_size == 16 and child.shipped == "tiny"
+    assert grandchild.settings.patch == 32 and grandchild.init == ("child", 50)
+    assert [
+        (v.step, v.natural_ideal, v.natural_fitted, v.real_video) for v in child.validations
+    ] == [(60, 32.0, 24.0, 28.0)]
+    assert root.validations[0].real_video is None
+
+
+def test_a_lineage_counts_the_windows_its_ancestors_saw_up_to_where_each_child_started(campaign):
+    runs = load_campaign(campaign)
+    assert lineage(runs, "grandchild") == ["root", "child", "grandchild"]
+    assert samples_before(runs, "root") == 0
+    assert samples_before(runs, "child") == 150 * 8
+    assert samples_before(runs, "grandchild") == 150 * 8 + 50 * 16
+
+
+def test_the_campaign_file_must_account_for_every_run(tmp_path):
+    entry = {
+        "init": None,
+        "settings": {"member": "tiny", "batch_size": 8, "patch": 48, "hardware": CPU},
+    }
+    _write(tmp_path / "a", {"r1": [_train(1, 1.0)], "r2": [_train(1, 1.0)]}, {"r1": entry})
+    with pytest.raises(InputError, match="no entry for r2"):
+        load_campaign(tmp_path / "a")
+    _write(tmp_path / "b", {"r1": [_train(1, 1.0)]}, {"r1": entry, "gone": entry})
+    with pytest.raises(InputError, match="without a metrics log: gone"):
+        load_campaign(tmp_path / "b")
+    orphan = entry | {"init": {"run": "nowhere", "step": 5}}
+    _write(tmp_path / "c", {"r1": [_train(1, 1.0)]}, {"r1": orphan})
+    with pytest.raises(InputError, match="starts from nowhere"):
+        load_campaign(tmp_path / "c")
+    _write(tmp_path / "d", {"r1": [_train(1, 1.0)]}, {"r1": {"init": None}})
+    with pytest.raises(InputError, match="no settings"):
+        load_campaign(tmp_path / "d")
+    circle = {
+        "r1": entry | {"init": {"run": "r2", "step": 1}},
+        "r2": entry | {"init": {"run": "r1", "step": 1}},
+    }
+    _write(tmp_path / "e", {"r1": [_train(1, 1.0)], "r2": [_train(1, 1.0)]}, circle)
+    with pytest.raises(InputError, match="circle"):
+        lineage(load_campaign(tmp_path / "e"), "r1")
+
+
+def test_the_committed_campaign_covers_every_kept_run_and_names_shipped_models():
+    """Every run in training_state/ has its settings and its start; each lineage begins with a
+    run from scratch; what the campaign says shipped is a shipped model of the same member."""
+    runs = load_campaign(REPO / "training_state")
+    members = {name: graph_metadata(path)["member"] for name, path in shipped_models().items()}
+    for name, run in runs.items():
+        assert run.settings.batch_size > 0 and run.steps > 0, name
+        assert runs[lineage(runs, name)[0]].init is None
+        if run.shipped:
+            assert members[run.shipped] == run.settings.member, name
+        if run.init:
+            parent = runs[run.init[0]]
+            assert run.init[1] <= parent.steps, name  # started from a step its parent reached
+    assert {run.shipped for run in runs.values() if run.shipped} == set(members)
