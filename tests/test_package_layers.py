@@ -13,7 +13,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "spk2img"
 
 LAYERS: list[set[str]] = [
-    {"errors", "provenance", "parts", "io", "protocol"},  # spike and wire formats, transfer
+    {"errors", "provenance", "parts", "io", "protocol", "markdown"},  # formats, transfer
     {"model"},  # the network and its geometry
     {"sim"},  # what a spike camera films
     {"runtime"},  # spikes -> windows -> network -> frames

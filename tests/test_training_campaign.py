@@ -6,6 +6,7 @@ import pytest
 from spk2img.errors import InputError
 from spk2img.runtime.onnx_backend import graph_metadata, shipped_models
 from spk2img.training.campaign import lineage, load_campaign, samples_before
+from spk2img.training.campaign_report import curves_plot, markdown
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = "a 2-core x86_64 CPU, 1 torch thread(s)"
@@ -75,10 +76,9 @@ def test_runs_count_their_steps_windows_and_optimiser_time(campaign):
     assert (child.steps, child.samples, child.wall_s) == (60, 960, 40.0)
     assert child.settings.batch_size == 16 and child.shipped == "tiny"
     assert grandchild.settings.patch == 32 and grandchild.init == ("child", 50)
-    assert [
-        (v.step, v.natural_ideal, v.natural_fitted, v.real_video) for v in child.validations
-    ] == [(60, 32.0, 24.0, 28.0)]
-    assert root.validations[0].real_video is None
+    expected = {"natural_ideal": 32.0, "natural_fitted": 24.0, "real_video": 28.0}
+    assert [(v.step, v.psnr) for v in child.validations] == [(60, expected)]
+    assert root.validations[0].psnr == {"natural_ideal": 30.0, "natural_fitted": 22.0}
 
 
 def test_a_lineage_counts_the_windows_its_ancestors_saw_up_to_where_each_child_started(campaign):
@@ -87,6 +87,25 @@ def test_a_lineage_counts_the_windows_its_ancestors_saw_up_to_where_each_child_s
     assert samples_before(runs, "root") == 0
     assert samples_before(runs, "child") == 150 * 8
     assert samples_before(runs, "grandchild") == 150 * 8 + 50 * 16
+
+
+def test_the_report_sums_each_member_and_hardware_and_keeps_hand_written_sections(campaign):
+    runs = load_campaign(campaign)
+    md, figure = campaign / "campaign.md", campaign / "images" / "curves.png"
+    md.write_text("# Training campaign\n\nold\n\n## Runs\n\nold table\n\n## Notes\n\nkept\n")
+    text = markdown(runs, campaign, figure, md, "the command")
+    lines = text.splitlines()
+    # one member on one hardware: 3 runs, 200 + 60 + 10 steps, 1600 + 960 + 40 windows
+    assert "| tiny | CPU, 1 thread | 3 | 270 | 2,600 |" in text
+    child = next(line for line in lines if line.startswith("| `child`"))
+    assert "`root` @ 150" in child and "| 960 |" in child and "32.00 → 32.00 (32.00)" in child
+    assert "`tiny`" in child  # what shipped from it
+    order = [line.split("`")[1] for line in lines if line.startswith("| `")]
+    assert order == ["root", "child", "grandchild"]
+    assert "old table" not in text and text.rstrip().endswith("## Notes\n\nkept")
+    assert "](images/curves.png)" in text
+    curves_plot(runs, figure)
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_the_campaign_file_must_account_for_every_run(tmp_path):

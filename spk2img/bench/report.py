@@ -21,6 +21,8 @@ import json
 import math
 from pathlib import Path
 
+from spk2img.markdown import table_head, table_row
+
 from .cases import SCENE_CLASSES
 from .profile import top_operators
 
@@ -434,13 +436,3 @@ def number(value: float | None) -> str:
     if abs(value) >= 100:
         return f"{value:,.0f}"
     return f"{value:.1f}" if abs(value) >= 10 else f"{value:.2f}"
-
-
-def table_head(columns: list[str]) -> list[str]:
-    """A markdown table's header and separator lines."""
-    return [table_row(columns), table_row(["---"] * len(columns))]
-
-
-def table_row(cells: list) -> str:
-    """One markdown table line."""
-    return "| " + " | ".join(str(c) for c in cells) + " |"

@@ -33,16 +33,23 @@ class RunSettings:
     hardware: str
 
 
+VALIDATIONS = {
+    "natural_ideal": ("natural", "psnr_ideal", "natural validation, noise-free"),
+    "natural_fitted": ("natural", "psnr_fitted", "natural validation, fitted sensor"),
+    "real_video": ("real_video", "psnr", "real-video validation crops"),
+}
+"""The validations a campaign follows: name -> where a ``val`` record keeps its PSNR (dB)
+(section, field) and what it is in words: the natural validation's noise-free and
+fitted-sensor regimes, the real-video crops."""
+
+
 @dataclass(frozen=True)
 class Validation:
-    """One validation of a run at ``step``: PSNR (dB) on the natural validation's noise-free and
-    fitted-sensor regimes and on the real-video crops (``None`` where the run did not measure
-    it)."""
+    """One validation of a run at ``step``: PSNR (dB) by the names of :data:`VALIDATIONS`, of
+    those the run measured."""
 
     step: int
-    natural_ideal: float | None
-    natural_fitted: float | None
-    real_video: float | None
+    psnr: dict[str, float]
 
 
 @dataclass(frozen=True)
@@ -87,9 +94,11 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
     validations = tuple(
         Validation(
             r["step"],
-            r.get("natural", {}).get("psnr_ideal"),
-            r.get("natural", {}).get("psnr_fitted"),
-            r.get("real_video", {}).get("psnr"),
+            {
+                name: r[section][field]
+                for name, (section, field, _) in VALIDATIONS.items()
+                if field in r.get(section, {})
+            },
         )
         for r in records
         if r["kind"] == "val"

@@ -1,12 +1,12 @@
-"""Write the training campaign's tables and curves: docs/training_campaign.md and its figure.
+"""The training campaign as a document: docs/training_campaign.md and its figure.
 
-``python scripts/training_campaign.py [--state-dir training_state] [--md
+``python -m spk2img.training.campaign_report [--state-dir training_state] [--md
 docs/training_campaign.md] [--figure docs/images/training_campaign.png]`` reads every run of
-``--state-dir`` (:mod:`spk2img.training.campaign`: the runs' metrics logs and campaign.json) and
-writes, per member and hardware, the steps, windows, optimiser hours and windows per second;
-per run, the same with what it started from and its first, last and best validation; and the
-validation curves of every lineage against the windows its network has seen. The sections
-(``## ...``) written below the generated ones in ``--md`` are kept.
+``--state-dir`` (:func:`spk2img.training.campaign.load_campaign`: the runs' metrics logs and
+campaign.json) and writes, per member and hardware, the steps, windows, optimiser hours and
+windows per second; per run, the same with what it started from and its first, last and best
+validation; and the validation curves of every lineage against the windows its network has
+seen. The sections (``## ...``) written below the generated ones in ``--md`` are kept.
 """
 
 from __future__ import annotations
@@ -16,15 +16,12 @@ import datetime
 from collections import defaultdict
 from pathlib import Path
 
-from spk2img.bench.report import table_head, table_row
-from spk2img.training.campaign import Run, lineage, load_campaign, samples_before
+from spk2img.markdown import table_head, table_row
+
+from .campaign import VALIDATIONS, Run, lineage, load_campaign, samples_before
 
 GENERATED = ("# Training campaign", "## By member and hardware", "## Runs", "## Curves")
-METRICS = {
-    "natural_ideal": "natural validation, noise-free (dB)",
-    "natural_fitted": "natural validation, fitted sensor (dB)",
-    "real_video": "real-video validation crops (dB)",
-}
+METRIC_LABELS = {name: f"{words} (dB)" for name, (_, _, words) in VALIDATIONS.items()}
 MEMBER_ORDER = ("paper", "small", "lite", "cpu", "tiny")
 
 
@@ -83,7 +80,7 @@ def megapixels(run: Run) -> float:
 
 def curve_cell(run: Run, metric: str) -> str:
     """``first → last (best)`` of a validation metric of ``run``, or a dash."""
-    values = [getattr(v, metric) for v in run.validations if getattr(v, metric) is not None]
+    values = [v.psnr[metric] for v in run.validations if metric in v.psnr]
     if not values:
         return "—"
     return f"{values[0]:.2f} → {values[-1]:.2f} ({max(values):.2f})"
@@ -101,7 +98,7 @@ def runs_table(runs: dict[str, Run]) -> list[str]:
             "windows",
             "optimiser h",
             "windows/s",
-            *(f"{label}: first → last (best)" for label in METRICS.values()),
+            *(f"{label}: first → last (best)" for label in METRIC_LABELS.values()),
             "shipped as",
         ]
     )
@@ -120,7 +117,7 @@ def runs_table(runs: dict[str, Run]) -> list[str]:
                     f"{run.samples:,}",
                     f"{run.wall_s / 3600:.2f}",
                     f"{run.samples_per_s:.1f}",
-                    *(curve_cell(run, metric) for metric in METRICS),
+                    *(curve_cell(run, metric) for metric in METRIC_LABELS),
                     f"`{run.shipped}`" if run.shipped else "",
                 ]
             )
@@ -129,22 +126,22 @@ def runs_table(runs: dict[str, Run]) -> list[str]:
 
 
 def curves_plot(runs: dict[str, Run], path: Path) -> None:
-    """Each metric of :data:`METRICS` (one panel each) of every run against the windows its
+    """Each metric of :data:`METRIC_LABELS` (one panel each) of every run against the windows its
     network had seen (its ancestors' included), coloured by member; GPU runs drawn thicker."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(METRICS), figsize=(19, 5.5), dpi=120, squeeze=False)
+    fig, axes = plt.subplots(1, len(METRIC_LABELS), figsize=(19, 5.5), dpi=120, squeeze=False)
     colours = {member: f"C{i}" for i, member in enumerate(MEMBER_ORDER)}
-    for ax, (metric, label) in zip(axes[0], METRICS.items(), strict=True):
+    for ax, (metric, label) in zip(axes[0], METRIC_LABELS.items(), strict=True):
         for name in lineage_order(runs):
             run = runs[name]
             points = [
-                (samples_before(runs, name) + v.step * run.settings.batch_size, getattr(v, metric))
+                (samples_before(runs, name) + v.step * run.settings.batch_size, v.psnr[metric])
                 for v in run.validations
-                if getattr(v, metric) is not None
+                if metric in v.psnr
             ]
             if not points:
                 continue
@@ -236,7 +233,7 @@ def main() -> None:
     args = parser.parse_args()
     runs = load_campaign(args.state_dir)
     curves_plot(runs, args.figure)
-    command = "python scripts/training_campaign.py"
+    command = "python -m spk2img.training.campaign_report"
     args.md.write_text(markdown(runs, args.state_dir, args.figure, args.md, command))
     print(f"wrote {args.md} and {args.figure} ({len(runs)} runs)")
 
