@@ -77,8 +77,11 @@ def test_quick_run_has_every_row_and_finite_numbers(quick_run):
             assert set(q["classes"]) == set(SCENE_CLASSES)
         else:
             assert "quality" not in row  # untrained: timed, never scored
-    assert tiny["torch"]["max_abs_error"] == 0
-    assert tiny["onnx"]["max_abs_error"] < 1e-3
+    shipped = {r["backend"]: r for r in results["rows"] if r["weights"] == "shipped"}
+    assert set(shipped) == set(QUICK.trained_backends)
+    assert tiny["torch"]["max_abs_error"] == shipped["torch"]["max_abs_error"] == 0
+    assert shipped["onnx"]["max_abs_error"] < 1e-3  # the shipped graph against its checkpoint
+    assert shipped["onnx-fp16"]["max_abs_error"] < 0.05
     assert _finite(*results["matmul_gflops"].values())
     levels = results["service"]["levels"]
     assert [level["clients"] for level in levels] == [1, 4]
