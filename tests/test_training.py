@@ -181,6 +181,7 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
     state = load_checkpoint(tuned / "last.pt")
     assert state["step"] == 2 and state["init_from"]["step"] == 3
     assert state["init_from"]["path"] == str(source / "last.pt")
+    assert state["init_from"]["run"] == "source"  # the run folder that wrote the weights
     assert _records(tuned, "run")[0]["init_from"] == state["init_from"]
     small = TINY_RUN | {"member": "small", "run_dir": str(tmp_path / "x")}
     with pytest.raises(InputError, match="another shape"):

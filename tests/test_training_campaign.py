@@ -35,33 +35,42 @@ def _val(step, ideal=None, real_video=None):
     return record
 
 
-def _run_record(step, batch_size, patch=64):
+def _run_record(step, batch_size, patch=64, init=None):
+    """A ``run`` record as training writes it; ``init``: ``(run, step)`` that --init loaded."""
     config = {"member": "tiny", "batch_size": batch_size, "patch": patch}
-    return {"kind": "run", "step": step, "train_config": config, "hardware": CPU}
+    init_from = (
+        {"path": f"runs/{init[0]}/last.pt", "run": init[0], "step": init[1]} if init else None
+    )
+    return {
+        "kind": "run",
+        "step": step,
+        "train_config": config,
+        "hardware": CPU,
+        "init_from": init_from,
+    }
 
 
 @pytest.fixture
 def campaign(tmp_path):
-    """root (settings in the campaign file, batch 8) -> child (its own run record, batch 16;
-    resumed once) -> grandchild (batch 4)."""
+    """root (settings and start in the campaign file, batch 8) -> child (its own run record,
+    batch 16; resumed once) -> grandchild (batch 4, no entry in the campaign file)."""
     runs = {
         "root": [_train(100, 50.0), _val(100, ideal=30.0), _train(200, 100.0), _val(200, 31.0)],
         "child": [
-            _run_record(0, 16),
+            _run_record(0, 16, init=("root", 150)),
             _train(30, 20.0),
-            _run_record(30, 16),  # resumed: the steps and wall time go on
+            _run_record(30, 16, init=("root", 150)),  # resumed: the steps and wall time go on
             _train(60, 40.0),
             _val(60, ideal=32.0, real_video=28.0),
         ],
-        "grandchild": [_run_record(0, 4, patch=32), _train(10, 1.0)],
+        "grandchild": [_run_record(0, 4, patch=32, init=("child", 50)), _train(10, 1.0)],
     }
     entries = {
         "root": {
             "init": None,
             "settings": {"member": "tiny", "batch_size": 8, "patch": 48, "hardware": CPU},
         },
-        "child": {"init": {"run": "root", "step": 150}, "shipped": "tiny"},
-        "grandchild": {"init": {"run": "child", "step": 50}},
+        "child": {"shipped": "tiny"},
     }
     _write(tmp_path, runs, entries)
     return tmp_path
@@ -108,14 +117,18 @@ def test_the_report_sums_each_member_and_hardware_and_keeps_hand_written_section
     assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_the_campaign_file_must_account_for_every_run(tmp_path):
+def test_every_run_must_say_how_it_trained_and_what_it_started_from(tmp_path):
     entry = {
         "init": None,
         "settings": {"member": "tiny", "batch_size": 8, "patch": 48, "hardware": CPU},
     }
     _write(tmp_path / "a", {"r1": [_train(1, 1.0)], "r2": [_train(1, 1.0)]}, {"r1": entry})
-    with pytest.raises(InputError, match="no entry for r2"):
+    with pytest.raises(InputError, match="r2: no run record in its log and no settings"):
         load_campaign(tmp_path / "a")
+    older = _run_record(0, 8) | {"init_from": {"path": "x.pt", "step": 3}}  # no run named
+    _write(tmp_path / "f", {"r1": [older, _train(1, 1.0)]}, {})
+    with pytest.raises(InputError, match="r1: neither its log nor"):
+        load_campaign(tmp_path / "f")
     _write(tmp_path / "b", {"r1": [_train(1, 1.0)]}, {"r1": entry, "gone": entry})
     with pytest.raises(InputError, match="without a metrics log: gone"):
         load_campaign(tmp_path / "b")

@@ -1,10 +1,12 @@
 """The training campaign: every run's settings, samples, optimiser time and validation curve.
 
 Read from the runs' metrics logs (``training_state/NAME/metrics.jsonl``) and the campaign file
-(``training_state/campaign.json``), which says what each run started from (``init``: a run and
-its step, or ``null`` for a run from scratch) and, for runs logged before the ``run`` record
-existed, their settings (member, batch, patch, hardware). A run started since logs those
-itself, as a ``run`` record at every (re)start.
+(``training_state/campaign.json``). A run logs its settings (member, batch, patch, hardware) and
+what ``--init`` loaded (the run that wrote it and its step) in a ``run`` record at every
+(re)start; the campaign file says the same for the runs logged before that record existed
+(``settings``; ``init``: a run and its step, or ``null`` for a run from scratch), and what
+shipped from a run (``shipped``: a shipped model's name). An entry's ``init`` overrides the
+log's.
 
 A run's samples are its steps times its batch; its time is the optimiser's (``wall_s``, the
 training steps alone: validation and checkpoints left out). A lineage is a run with the runs it
@@ -80,8 +82,9 @@ class Run:
 
 def read_run(name: str, records: list[dict], entry: dict) -> Run:
     """The :class:`Run` ``name`` from its metrics ``records`` (``metrics.jsonl``, in order) and
-    its ``entry`` of the campaign file; settings from its first ``run`` record, else from the
-    entry (an input error where neither has them)."""
+    its ``entry`` of the campaign file (``{}`` for none); settings from its first ``run``
+    record, else from the entry; its start from the entry, else from that record (an input
+    error where neither says)."""
     logged = next((r for r in records if r["kind"] == "run"), None)
     if logged is not None:
         tc = logged["train_config"]
@@ -90,6 +93,14 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
         settings = RunSettings(**entry["settings"])
     else:
         raise InputError(f"run {name}: no run record in its log and no settings in {CAMPAIGN_FILE}")
+    if "init" in entry:
+        init = entry["init"]
+    elif logged is not None and (logged["init_from"] is None or logged["init_from"].get("run")):
+        init = logged["init_from"]
+    else:
+        raise InputError(
+            f"run {name}: neither its log nor {CAMPAIGN_FILE} says what it started from"
+        )
     trained = [r for r in records if r["kind"] == "train"]
     validations = tuple(
         Validation(
@@ -103,7 +114,6 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
         for r in records
         if r["kind"] == "val"
     )
-    init = entry.get("init")
     return Run(
         name=name,
         settings=settings,
@@ -118,20 +128,18 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
 
 def load_campaign(state_dir: Path) -> dict[str, Run]:
     """Every run of ``state_dir`` (a folder holding ``campaign.json`` and one folder with a
-    ``metrics.jsonl`` per run), by name; an input error for a run folder missing from the
-    campaign file, an entry without a log, or an ``init`` naming no run."""
+    ``metrics.jsonl`` per run), by name; an input error for a run whose settings or start
+    neither its log nor the campaign file gives, an entry without a log, or a start naming no
+    run."""
     entries = json.loads((state_dir / CAMPAIGN_FILE).read_text())["runs"]
     logs = {p.parent.name: p for p in sorted(state_dir.glob("*/metrics.jsonl"))}
-    missing = sorted(set(logs) - set(entries))
-    if missing:
-        raise InputError(f"{CAMPAIGN_FILE} has no entry for {', '.join(missing)}")
     unlogged = sorted(set(entries) - set(logs))
     if unlogged:
         raise InputError(f"{CAMPAIGN_FILE} lists runs without a metrics log: {', '.join(unlogged)}")
     runs = {}
     for name, path in logs.items():
         records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-        runs[name] = read_run(name, records, entries[name])
+        runs[name] = read_run(name, records, entries.get(name, {}))
     for run in runs.values():
         if run.init and run.init[0] not in runs:
             raise InputError(f"run {run.name} starts from {run.init[0]}, which is not a run")

@@ -307,7 +307,8 @@ def train(cfg: TrainConfig) -> dict:
 
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
     """Load the weights of checkpoint ``path`` into ``model`` (same shape) and return where
-    they came from: the path, and the step, wall time, member and commit that trained them."""
+    they came from: the path, the run that wrote it (its run folder's name, where the
+    checkpoint records one), and the step, wall time, member and commit that trained them."""
     state = load_checkpoint(path)
     stored = stored_config(state, path)
     if stored == model.config:
@@ -329,8 +330,10 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
                 ) from exc
     else:
         raise InputError(f"--init {path}: another shape than the member being trained")
+    run_dir = state.get("train_config", {}).get("run_dir")
     return {
         "path": str(path),
+        "run": Path(run_dir).name if run_dir else None,
         "member": state.get("member"),
         "step": int(state.get("step", 0)),
         "wall_s": float(state.get("wall_s", 0.0)),
