@@ -34,6 +34,11 @@ class RunSettings:
     patch: int
     hardware: str
 
+    @property
+    def on_gpu(self) -> bool:
+        """Whether a GPU trained the run (training's hardware words name CUDA)."""
+        return "CUDA" in self.hardware
+
 
 VALIDATIONS = {
     "natural_ideal": ("natural", "psnr_ideal", "natural validation, noise-free"),
@@ -106,8 +111,8 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
         Validation(
             r["step"],
             {
-                name: r[section][field]
-                for name, (section, field, _) in VALIDATIONS.items()
+                key: r[section][field]
+                for key, (section, field, _) in VALIDATIONS.items()
                 if field in r.get(section, {})
             },
         )

@@ -18,18 +18,18 @@ from pathlib import Path
 
 from spk2img.markdown import table_head, table_row
 
-from .campaign import VALIDATIONS, Run, lineage, load_campaign, samples_before
+from .campaign import VALIDATIONS, Run, RunSettings, lineage, load_campaign, samples_before
 
 GENERATED = ("# Training campaign", "## By member and hardware", "## Runs", "## Curves")
 METRIC_LABELS = {name: f"{words} (dB)" for name, (_, _, words) in VALIDATIONS.items()}
 MEMBER_ORDER = ("paper", "small", "lite", "cpu", "tiny")
 
 
-def hardware_name(hardware: str) -> str:
+def hardware_name(settings: RunSettings) -> str:
     """A short name of a run's hardware: the GPU's, or ``CPU, N thread(s)``."""
-    if "CUDA" in hardware:
-        return hardware.split(" (")[0]
-    threads = int(hardware.rsplit(", ", 1)[1].split()[0])
+    if settings.on_gpu:
+        return settings.hardware.split(" (")[0]
+    threads = int(settings.hardware.rsplit(", ", 1)[1].split()[0])
     return f"CPU, {threads} thread{'s' if threads > 1 else ''}"
 
 
@@ -47,7 +47,7 @@ def lineage_order(runs: dict[str, Run]) -> list[str]:
 def summary_table(runs: dict[str, Run]) -> list[str]:
     groups: dict[tuple[str, str], list[Run]] = defaultdict(list)
     for run in runs.values():
-        groups[(run.settings.member, hardware_name(run.settings.hardware))].append(run)
+        groups[(run.settings.member, hardware_name(run.settings))].append(run)
     lines = table_head(
         ["member", "hardware", "runs", "steps", "windows", "Mpx", "optimiser h", "windows/s"]
     )
@@ -110,7 +110,7 @@ def runs_table(runs: dict[str, Run]) -> list[str]:
                 [
                     f"`{name}`",
                     s.member,
-                    hardware_name(s.hardware),
+                    hardware_name(s),
                     f"{s.batch_size} x {s.patch}²",
                     f"`{run.init[0]}` @ {run.init[1]:,}" if run.init else "scratch",
                     f"{run.steps:,}",
@@ -135,17 +135,19 @@ def curves_plot(runs: dict[str, Run], path: Path) -> None:
 
     fig, axes = plt.subplots(1, len(METRIC_LABELS), figsize=(19, 5.5), dpi=120, squeeze=False)
     colours = {member: f"C{i}" for i, member in enumerate(MEMBER_ORDER)}
+    order = lineage_order(runs)
     for ax, (metric, label) in zip(axes[0], METRIC_LABELS.items(), strict=True):
-        for name in lineage_order(runs):
+        for name in order:
             run = runs[name]
+            before = samples_before(runs, name)
             points = [
-                (samples_before(runs, name) + v.step * run.settings.batch_size, v.psnr[metric])
+                (before + v.step * run.settings.batch_size, v.psnr[metric])
                 for v in run.validations
                 if metric in v.psnr
             ]
             if not points:
                 continue
-            gpu = "CUDA" in run.settings.hardware
+            gpu = run.settings.on_gpu
             ax.plot(
                 *zip(*points, strict=True),
                 color=colours[run.settings.member],
@@ -187,7 +189,7 @@ def kept_sections(md: Path) -> list[str]:
 
 
 def markdown(runs: dict[str, Run], state_dir: Path, figure: Path, md: Path, command: str) -> str:
-    gpu = [r for r in runs.values() if "CUDA" in r.settings.hardware]
+    gpu = [r for r in runs.values() if r.settings.on_gpu]
     lines = [
         "# Training campaign",
         "",
@@ -196,7 +198,7 @@ def markdown(runs: dict[str, Run], state_dir: Path, figure: Path, md: Path, comm
         "from). Windows: training windows seen (steps x batch); Mpx: windows x patch side²; "
         "optimiser h: the time of the training steps alone (validations and checkpoints left "
         "out). The CPU runs ran on one or two cores of a 2-core machine, most of them beside "
-        f"other work; the {len(gpu)} GPU runs on a lent GPU for one 15-minute lease. Every run's "
+        f"other work; the {len(gpu)} GPU runs on lent GPUs, 15 minutes a lease. Every run's "
         "command and what it showed: training_state/README.md.",
         "",
         "## By member and hardware",

@@ -144,6 +144,13 @@ def train(cfg: TrainConfig) -> dict:
     else:
         init_from = None
     commit = state.get("commit", "unknown") if start else git_commit()  # the code that trains
+    origin = {  # what trains and from what: in every checkpoint and each (re)start's log record
+        "member": cfg.member,
+        "train_config": dataclasses.asdict(cfg),
+        "hardware": describe_hardware(device, cfg.threads),
+        "commit": commit,
+        "init_from": init_from,
+    }
     net = DistributedDataParallel(model) if run.world > 1 else model
     index = SourceIndex.scan(cfg.data, cfg.patch, NEVER_TRAINED) if cfg.data else None
     real_sensor = load_preset(cfg.sensor_preset or FITTED_PRESET)
@@ -164,15 +171,7 @@ def train(cfg: TrainConfig) -> dict:
     log = _Log(run_dir / "metrics.jsonl") if run.main else None
     val_sets = {}
     if run.main:
-        log.write(
-            kind="run",
-            step=start,
-            member=cfg.member,
-            train_config=dataclasses.asdict(cfg),
-            hardware=describe_hardware(device, cfg.threads),
-            commit=commit,
-            init_from=init_from,
-        )
+        log.write(kind="run", step=start, **origin)
         val_sets["natural"] = natural_validation_set(cfg.data) if cfg.data else []
         val_sets["procedural"] = validation_set(cfg.val_per_class)
         real_video = real_video_set(cfg.data, seeds=1, size=REAL_VIDEO_VAL_SIZE) if cfg.data else []
@@ -209,12 +208,8 @@ def train(cfg: TrainConfig) -> dict:
             optimizer=optimizer.state_dict(),
             step=step,
             wall_s=wall,
-            member=cfg.member,
             config=config_to_dict(model.config),
-            train_config=dataclasses.asdict(cfg),
-            commit=commit,
-            hardware=describe_hardware(device, cfg.threads),
-            init_from=init_from,
+            **origin,
             **extra,
         )
 
