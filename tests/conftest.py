@@ -88,6 +88,21 @@ def tiny_export(tiny_checkpoint, run_dir):
 
 
 @pytest.fixture(scope="session")
+def three_block_export(run_dir):
+    """A random-weight :data:`~onnx_models.THREE_BLOCKS` member (27-frame window) exported
+    (one-shot and block graphs) and verified, its checkpoint beside it (same stem, ``.pt``);
+    built once a run, shared by the workers."""
+    from onnx_models import THREE_BLOCKS, write_tiny_checkpoint, write_tiny_export
+
+    def build(folder: Path) -> None:
+        write_tiny_export(
+            write_tiny_checkpoint(folder / "three.pt", THREE_BLOCKS), folder / "three.onnx"
+        )
+
+    return built_once(run_dir, "three-blocks", build) / "three.onnx"
+
+
+@pytest.fixture(scope="session")
 def service(standin_model):
     """A real ``spk2img serve`` (uvicorn, subprocess) serving the stand-in model."""
     from service_support import run_server

@@ -10,12 +10,14 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
+import torch.nn.functional as F
 from onnx_models import EXPORT_EXAMPLE_SIZE, TINY_TRAIN_COMMIT
 
 from spk2img import __version__
 from spk2img.cli import main
 from spk2img.errors import InputError
 from spk2img.export import hard_cases
+from spk2img.export.grid_sample_graph import grid_sample_as_custom_op
 from spk2img.export.metadata import weights_sha256
 from spk2img.export.onnx_export import (
     ExportConfig,
@@ -185,16 +187,41 @@ def test_rewritten_weights_give_the_graph_of_the_changed_network(tiny_export, ti
     assert graph.SerializeToString() == before
 
 
-def test_deform_conv_graph_matches_grid_sample_graph(tiny_export, tiny_checkpoint, tmp_path):
-    source = checkpoint_source(tiny_checkpoint)
+def test_deform_conv_graph_matches_grid_sample_graph(three_block_export, tmp_path):
+    """The DeformConv graph of a network (the three-block member: the cheapest to trace) computes
+    what its GridSample graph does, one DeformConv node where the other samples."""
+    source = checkpoint_source(three_block_export.with_suffix(".pt"))
     model = export_onnx(source, tmp_path / "dc.onnx", ExportConfig(graph="deform_conv"))
-    ops = operator_counts(model)
-    assert ops[("", "DeformConv")] == 3 and ("", "GridSample") not in ops
-    assert {domain for domain, _ in ops} == {""}
+    ops, grid_ops = operator_counts(model), operator_counts(onnx.load(three_block_export))
+    assert ops[("", "DeformConv")] == grid_ops[("", "GridSample")] > 0
+    assert ("", "GridSample") not in ops and {domain for domain, _ in ops} == {""}
     assert [(o.domain, o.version) for o in model.opset_import] == [("", 19)]
-    deform, grid = OnnxModel(tmp_path / "dc.onnx", 1), OnnxModel(tiny_export, 1)
+    deform, grid = OnnxModel(tmp_path / "dc.onnx", 1), OnnxModel(three_block_export, 1)
     for windows in (hard_cases.scene_cases()[0].spikes, _windows(5, 2, 17, 23)):
+        windows = source.model.config.geometry.crop(windows, axis=1)  # the centred 27 frames
         assert np.abs(deform(windows) - grid(windows)).max() <= ATOL
+
+
+def test_bilinear_grid_samples_are_traced_as_one_op_and_nothing_else_is():
+    """While exporting, F.grid_sample bilinear without aligned corners is the custom op (its
+    result exactly F.grid_sample's, every padding mode); other modes and conventions are left
+    to F.grid_sample; afterwards F.grid_sample is itself again."""
+    original = F.grid_sample
+    rng = torch.Generator().manual_seed(0)
+    x, grid = torch.rand(2, 3, 5, 7, generator=rng), torch.rand(2, 4, 6, 2, generator=rng) * 3 - 1.5
+    with grid_sample_as_custom_op():
+        assert F.grid_sample is not original
+        for padding in ("zeros", "border", "reflection"):
+            with torch.autograd.profiler.profile() as prof:
+                routed = F.grid_sample(x, grid, padding_mode=padding, align_corners=False)
+            assert "spk2img::grid_sample_bilinear" in {e.name for e in prof.function_events}
+            assert torch.equal(routed, original(x, grid, padding_mode=padding, align_corners=False))
+        for kwargs in ({"mode": "nearest", "align_corners": False}, {"align_corners": True}):
+            with torch.autograd.profiler.profile() as prof:
+                other = F.grid_sample(x, grid, **kwargs)
+            assert "spk2img::grid_sample_bilinear" not in {e.name for e in prof.function_events}
+            assert torch.equal(other, original(x, grid, **kwargs))
+    assert F.grid_sample is original
 
 
 def test_paper_random_weights_export_and_verify(tmp_path):

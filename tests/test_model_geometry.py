@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from onnx_models import write_tiny_checkpoint, write_tiny_export
+from onnx_models import THREE_BLOCKS
 from service_support import run_server
 
 import spk2img
@@ -22,13 +22,6 @@ from spk2img.model.checkpoint import config_to_dict
 from spk2img.model.config import MEMBERS, PUBLISHED_GEOMETRY, Geometry
 from spk2img.runtime.onnx_backend import OnnxModel, graph_geometry
 
-THREE_BLOCKS = replace(
-    MEMBERS["tiny"], num_blocks=3, sali_subwindows=(13, 7), residual_blocks=1, pyramid_levels=1
-)
-"""``tiny`` with three blocks, a 27-frame window (``k-13 .. k+13``), cut to the least that
-still has every component (two SALI sub-windows, one residual block, a one-level alignment):
-its graphs export in half the time of ``tiny``'s. The folded ``cpu``'s checks off its size
-multiple run on the shipped model (test_shipped_model.py)."""
 FRAMES, HEIGHT, WIDTH = 64, 12, 16
 
 
@@ -77,13 +70,11 @@ def test_graph_geometry_reads_the_config_or_else_the_input():
 
 
 @pytest.fixture(scope="module")
-def three_block_model(tmp_path_factory):
-    """A random-weight three-block member exported (one-shot and block graphs) and verified
-    (:func:`~spk2img.export.pipeline.export_verified`: the one-shot graph and the streamed
-    block graphs against torch)."""
-    folder = tmp_path_factory.mktemp("three-blocks")
-    checkpoint = write_tiny_checkpoint(folder / "three.pt", THREE_BLOCKS)
-    return write_tiny_export(checkpoint, folder / "three.onnx")
+def three_block_model(three_block_export):
+    """The three-block member exported and verified (tests/conftest.py; :func:`~spk2img.export.
+    pipeline.export_verified`: the one-shot graph and the streamed block graphs against
+    torch)."""
+    return three_block_export
 
 
 @pytest.fixture(scope="module")
