@@ -17,7 +17,6 @@ from spk2img import __version__
 from spk2img.cli import main
 from spk2img.errors import InputError
 from spk2img.export import hard_cases
-from spk2img.export.grid_sample_graph import grid_sample_as_custom_op
 from spk2img.export.metadata import weights_sha256
 from spk2img.export.onnx_export import (
     ExportConfig,
@@ -31,6 +30,7 @@ from spk2img.export.onnx_export import (
 )
 from spk2img.export.pipeline import export_verified
 from spk2img.export.quantize import MIN_PSNR_VS_FP32, precision_report, reduce_precision
+from spk2img.export.sampling_ops import sampling_as_custom_ops
 from spk2img.export.verify import ATOL, reference_model, verify_onnx
 from spk2img.model.checkpoint import (
     config_to_dict,
@@ -202,26 +202,44 @@ def test_deform_conv_graph_matches_grid_sample_graph(three_block_export, tmp_pat
         assert np.abs(deform(windows) - grid(windows)).max() <= ATOL
 
 
-def test_bilinear_grid_samples_are_traced_as_one_op_and_nothing_else_is():
-    """While exporting, F.grid_sample bilinear without aligned corners is the custom op (its
-    result exactly F.grid_sample's, every padding mode); other modes and conventions are left
-    to F.grid_sample; afterwards F.grid_sample is itself again."""
-    original = F.grid_sample
+def _ran(op: str, function, *args, **kwargs) -> tuple[bool, torch.Tensor]:
+    """Whether ``function(*args, **kwargs)`` ran the custom op ``op``, and its result."""
+    with torch.autograd.profiler.profile() as prof:
+        result = function(*args, **kwargs)
+    return op in {e.name for e in prof.function_events}, result
+
+
+def test_bilinear_sampling_is_traced_as_one_op_and_nothing_else_is():
+    """While exporting, bilinear F.grid_sample without aligned corners and F.interpolate by
+    an integer factor are custom ops whose results are exactly the F functions' (every padding
+    mode, factors 2 and 4); other modes, conventions and sizes are left to F; afterwards F's
+    functions are themselves again."""
+    original = F.grid_sample, F.interpolate
     rng = torch.Generator().manual_seed(0)
     x, grid = torch.rand(2, 3, 5, 7, generator=rng), torch.rand(2, 4, 6, 2, generator=rng) * 3 - 1.5
-    with grid_sample_as_custom_op():
-        assert F.grid_sample is not original
+    sample, upsample = "spk2img::grid_sample_bilinear", "spk2img::upsample_bilinear"
+    with sampling_as_custom_ops():
+        assert (F.grid_sample, F.interpolate) != original
         for padding in ("zeros", "border", "reflection"):
-            with torch.autograd.profiler.profile() as prof:
-                routed = F.grid_sample(x, grid, padding_mode=padding, align_corners=False)
-            assert "spk2img::grid_sample_bilinear" in {e.name for e in prof.function_events}
-            assert torch.equal(routed, original(x, grid, padding_mode=padding, align_corners=False))
+            kwargs = {"padding_mode": padding, "align_corners": False}
+            routed, result = _ran(sample, F.grid_sample, x, grid, **kwargs)
+            assert routed and torch.equal(result, original[0](x, grid, **kwargs))
         for kwargs in ({"mode": "nearest", "align_corners": False}, {"align_corners": True}):
-            with torch.autograd.profiler.profile() as prof:
-                other = F.grid_sample(x, grid, **kwargs)
-            assert "spk2img::grid_sample_bilinear" not in {e.name for e in prof.function_events}
-            assert torch.equal(other, original(x, grid, **kwargs))
-    assert F.grid_sample is original
+            routed, result = _ran(sample, F.grid_sample, x, grid, **kwargs)
+            assert not routed and torch.equal(result, original[0](x, grid, **kwargs))
+        for factor in (2, 4):
+            kwargs = {"scale_factor": factor, "mode": "bilinear", "align_corners": False}
+            routed, result = _ran(upsample, F.interpolate, x, **kwargs)
+            assert routed and torch.equal(result, original[1](x, **kwargs))
+        for kwargs in (
+            {"scale_factor": 2.5, "mode": "bilinear", "align_corners": False},
+            {"scale_factor": 2, "mode": "bilinear", "align_corners": True},
+            {"size": (9, 9), "mode": "bilinear", "align_corners": False},
+            {"scale_factor": 2, "mode": "nearest"},
+        ):
+            routed, result = _ran(upsample, F.interpolate, x, **kwargs)
+            assert not routed and torch.equal(result, original[1](x, **kwargs))
+    assert (F.grid_sample, F.interpolate) == original
 
 
 def test_paper_random_weights_export_and_verify(tmp_path):

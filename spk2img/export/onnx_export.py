@@ -36,8 +36,8 @@ from .deform_conv_graph import (
     DEFORM_CONV_TRANSLATION,
     deform_conv_as_custom_op,
 )
-from .grid_sample_graph import GRID_SAMPLE_TRANSLATION, grid_sample_as_custom_op
 from .metadata import model_metadata
+from .sampling_ops import SAMPLING_TRANSLATION, sampling_as_custom_ops
 
 INPUT_NAME = "spikes"
 OUTPUT_NAME = "image"
@@ -220,8 +220,8 @@ def trace_to_onnx(
 ) -> onnx.ModelProto:
     """Trace ``module`` (eval mode) on ``examples`` with ``torch.onnx.export(dynamo=True)`` at
     ``config``'s graph kind and opset; the deformable convs become ``DeformConv`` nodes for the
-    ``deform_conv`` kind, the bilinear samples ``GridSample`` nodes traced as one op each
-    (:mod:`spk2img.export.grid_sample_graph`)."""
+    ``deform_conv`` kind; the bilinear samples and upsamplings are traced as one op each
+    (:mod:`spk2img.export.sampling_ops`)."""
     deform_conv = config.graph == "deform_conv"
     registration_log = logging.getLogger("torch.onnx._internal.exporter._registration")
     previous_level = registration_log.level
@@ -229,7 +229,7 @@ def trace_to_onnx(
     try:
         with (
             torch.no_grad(),
-            grid_sample_as_custom_op(),
+            sampling_as_custom_ops(),
             deform_conv_as_custom_op() if deform_conv else nullcontext(),
             warnings.catch_warnings(),
         ):
@@ -245,7 +245,7 @@ def trace_to_onnx(
                 input_names=io.inputs,
                 output_names=io.outputs,
                 dynamic_shapes=io.dynamic_shapes,
-                custom_translation_table=GRID_SAMPLE_TRANSLATION
+                custom_translation_table=SAMPLING_TRANSLATION
                 | (DEFORM_CONV_TRANSLATION if deform_conv else {}),
                 external_data=False,
                 optimize=True,
