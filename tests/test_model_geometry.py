@@ -70,14 +70,6 @@ def test_graph_geometry_reads_the_config_or_else_the_input():
 
 
 @pytest.fixture(scope="module")
-def three_block_model(three_block_export):
-    """The three-block member exported and verified (tests/conftest.py; :func:`~spk2img.export.
-    pipeline.export_verified`: the one-shot graph and the streamed block graphs against
-    torch)."""
-    return three_block_export
-
-
-@pytest.fixture(scope="module")
 def stream() -> np.ndarray:
     return (np.random.default_rng(5).random((FRAMES, HEIGHT, WIDTH)) < 0.3).astype(np.uint8)
 
@@ -90,32 +82,32 @@ def _whole_windows(model_path, spikes, centers) -> np.ndarray:
 
 
 def test_a_three_block_member_runs_through_api_cli_and_service(
-    three_block_model, stream, tmp_path, capsys
+    three_block_export, stream, tmp_path, capsys
 ):
-    assert OnnxModel(three_block_model, threads=1).geometry == THREE_BLOCKS.geometry
+    assert OnnxModel(three_block_export, threads=1).geometry == THREE_BLOCKS.geometry
     # the API: default stride = the model's block stride, from its first full 27-frame window
-    frames, centers = spk2img.reconstruct(stream, model=three_block_model, threads=1)
+    frames, centers = spk2img.reconstruct(stream, model=three_block_export, threads=1)
     assert centers.tolist() == list(range(13, FRAMES - 13, 7))
-    whole = _whole_windows(three_block_model, stream, centers)
+    whole = _whole_windows(three_block_export, stream, centers)
     np.testing.assert_allclose(frames, whole, atol=1e-5)  # block reuse = whole windows
-    recon = spk2img.Reconstructor("net", model=three_block_model, block_reuse=False, threads=1)
+    recon = spk2img.Reconstructor("net", model=three_block_export, block_reuse=False, threads=1)
     np.testing.assert_array_equal(
         recon.reconstruct(stream, centers=[13, 50]).frames,
-        _whole_windows(three_block_model, stream, [13, 50]),
+        _whole_windows(three_block_export, stream, [13, 50]),
     )
     with pytest.raises(ValueError, match="first valid centre is 13"):
         recon.reconstruct(stream, centers=[12])
     # the CLI, without a stride
     source, out = tmp_path / "s.npy", tmp_path / "cli.npz"
     np.save(source, stream)
-    args = ["reconstruct", str(source), "--out", str(out), "--model", str(three_block_model)]
+    args = ["reconstruct", str(source), "--out", str(out), "--model", str(three_block_export)]
     assert main([*args, "--threads", "1", "--no-progress"]) == 0
     assert "each 13-frame block encoded once: 8 blocks" in capsys.readouterr().err
     cli = np.load(out)
     np.testing.assert_array_equal(cli["centers"], centers)
     np.testing.assert_array_equal(cli["frames"], frames)
     # the service and the CLI through it: the geometry comes from GET /v1/models
-    with run_server(three_block_model, "--threads", "1") as server:
+    with run_server(three_block_export, "--threads", "1") as server:
         model = server.get("/v1/models").json()["models"][0]
         assert model["window"] == 27
         assert model["geometry"] == {**THREE_BLOCKS.geometry.as_dict()}

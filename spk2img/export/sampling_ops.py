@@ -96,8 +96,15 @@ def sampling_as_custom_ops() -> Iterator[None]:
             return grid_sample_bilinear(input, grid, padding_mode)
         return GRID_SAMPLE(input, grid, mode, padding_mode, align_corners)
 
-    def interpolate(input, size=None, scale_factor=None, mode="nearest", align_corners=None,
-                    recompute_scale_factor=None, antialias=False):  # fmt: skip
+    def interpolate(
+        input,
+        size=None,
+        scale_factor=None,
+        mode="nearest",
+        align_corners=None,
+        recompute_scale_factor=None,
+        antialias=False,
+    ):
         factor = scale_factor if isinstance(scale_factor, int) else None
         if (
             mode == "bilinear"
