@@ -116,9 +116,11 @@ def main() -> None:
     )
     data = {
         "command": f"{earlier['command']} && {command} --add" if earlier else command,
-        "date": f"{earlier['date']} and {time.strftime('%Y-%m-%d')}"
-        if earlier
-        else time.strftime("%Y-%m-%d"),
+        "date": " and ".join(
+            dict.fromkeys(
+                [*(earlier["date"].split(" and ") if earlier else []), time.strftime("%Y-%m-%d")]
+            )
+        ),
         "clips": len({w.clip for w in windows}),
         "windows": len(windows),
         "seeds": args.seeds,
