@@ -44,7 +44,7 @@ case "$step" in
     seconds=${1:?seconds}
     shift
     timeout --signal=INT "$seconds" python3 -m spk2img train --device cuda --synthesis torch \
-      --no-progress "$@" || echo "train: exit $? (interrupted runs resume from last.pt)"
+      --no-progress "$@" || echo "train: exit $? (a run stopped by the timeout saved last.pt at its step)"
     ;;
   *)
     echo "unknown step $step: torch, receive, onnx or train" >&2

@@ -1,8 +1,10 @@
 import dataclasses
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from spk2img.sim.simulator import SensorConfig
 from spk2img.sim.sources import load_photo
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_loss
+from spk2img.training.stop import StopRequest
 from spk2img.training.synthesis import batch_generator, film_plans
 from spk2img.training.train import TrainConfig, learning_rate, load_initial_weights, train
 
@@ -336,3 +339,52 @@ def test_the_display_share_sets_how_many_natural_samples_take_the_value_as_the_l
     Image.fromarray(grey).save(tmp_path / "ramp.png")
     display = load_photo(tmp_path / "ramp.png", "display")
     assert np.allclose(display**2.2, load_photo(tmp_path / "ramp.png"), atol=1e-6)
+
+
+def test_a_stop_request_takes_the_first_signal_and_a_second_stops_at_once():
+    previous = signal.getsignal(signal.SIGTERM)
+    with StopRequest() as stop:
+        assert not stop.agreed(1) and stop.name == "another process of the run"
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop.agreed(1) and stop.signal == signal.SIGTERM and stop.name == "SIGTERM"
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+    assert signal.getsignal(signal.SIGTERM) is previous
+
+
+def test_ctrl_c_stops_a_run_after_its_step_and_saves_it(tmp_path):
+    """Ctrl-C (SIGINT to the whole process group, the worker too) ends a run at the step it
+    reached with that step in ``last.pt``, between the checkpoints it would have written;
+    the same command continues from there."""
+    run = tmp_path / "run"
+    flags = "--member tiny --patch 16 --batch-size 2 --val-per-class 1 --log-every 1"
+    cmd = [sys.executable, "-m", "spk2img", "train", *flags.split(), "--run-dir", str(run)]
+    long = ["--steps", "100000", "--val-every", "100000", "--checkpoint-every", "100000"]
+    proc = subprocess.Popen(
+        [*cmd, *long, "--workers", "1", "--no-progress"],
+        start_new_session=True,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline and proc.poll() is None:
+            if (run / "metrics.jsonl").is_file() and len(_records(run, "train")) >= 3:
+                break
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err[-2000:]
+    (stopped,) = _records(run, "stopped")
+    step = stopped["step"]
+    assert stopped["signal"] == "SIGINT" and 3 <= step < 100000
+    assert load_checkpoint(run / "last.pt")["step"] == step
+    assert _records(run, "train")[-1]["step"] == step and not _records(run, "summary")
+    assert f"stopped at step {step} of 100000 (SIGINT)" in err and "Traceback" not in err
+    more = ["--steps", str(step + 2), "--val-every", "100000", "--workers", "0"]
+    assert subprocess.run([*cmd, *more, "--no-progress"], timeout=240).returncode == 0
+    assert [r["step"] for r in _records(run, "run")] == [0, step]
+    assert [r["step"] for r in _records(run, "train")][-3:] == [step, step + 1, step + 2]

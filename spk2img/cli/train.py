@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import signal
 import sys
+from pathlib import Path
 
 from spk2img.cli.extras import needs_extra
 from spk2img.errors import InputError
@@ -68,6 +70,14 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise InputError(str(exc)) from exc
     summary = train(cfg)
+    if summary["stopped"]:
+        name, step = summary["stopped"]["signal"], summary["stopped"]["step"]
+        print(
+            f"spk2img train: stopped at step {step} of {cfg.steps} ({name}); "
+            f"{Path(cfg.run_dir) / 'last.pt'} holds it: the same command continues the run",
+            file=sys.stderr,
+        )
+        return 128 + signal.Signals[name].value if name in signal.Signals.__members__ else 130
     if summary["last_validation"]:
         last = summary["last_validation"]
         print(

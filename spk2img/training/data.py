@@ -11,6 +11,7 @@ processes may make them in any order.
 from __future__ import annotations
 
 import multiprocessing
+import signal
 import time
 import warnings
 from collections import deque
@@ -196,6 +197,9 @@ _WORKER_MAKER: SampleMaker | None = None
 def _init_worker(maker: SampleMaker) -> None:
     global _WORKER_MAKER
     _WORKER_MAKER = maker
+    # Ctrl-C reaches every process of the terminal's group: the training process decides
+    # when to stop (spk2img.training.stop); a worker it killed would never return its batch
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _worker_batch(make: str, step: int, size: int):

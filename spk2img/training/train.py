@@ -40,6 +40,7 @@ from spk2img.sim.sources import SourceIndex
 from .config import TrainConfig
 from .data import Batches, DataMix, SampleMaker
 from .loss import hierarchical_loss
+from .stop import StopRequest
 from .synthesis import batch_generator, film_plans
 
 CHECKPOINT_SECONDS = 600.0
@@ -111,7 +112,10 @@ def train(cfg: TrainConfig) -> dict:
     """Run (or resume) training; returns (and logs, as the ``summary`` record) where the run and
     its best checkpoint are, what the best was chosen on and scored, the wall time of optimiser
     steps and the last validation's scores (empty on ranks other than 0, which do not
-    validate)."""
+    validate). A run stopped by a signal (:mod:`spk2img.training.stop`) saves ``last.pt`` at
+    the step it reached and returns, logging a ``stopped`` record instead of the summary;
+    ``stopped`` then holds the signal's name and the step (None for a run that reached
+    ``cfg.steps``)."""
     device = training_device(cfg.device)
     run = _Run()
     torch.set_num_threads(cfg.threads)
@@ -225,61 +229,69 @@ def train(cfg: TrainConfig) -> dict:
     tick, tick_step = time.perf_counter(), start
     saved_at = time.monotonic()
     batches = Batches(maker, cfg.batch_size, start, cfg.workers, make)
-    try:
-        for step in range(start, cfg.steps):
-            t0 = time.perf_counter()
-            for group in optimizer.param_groups:
-                group["lr"] = learning_rate(cfg, step)
-            if films_on_device:
-                generator = batch_generator(cfg.seed, run.rank, step, device)
-                batch = film_plans(batches.next(), model.config.geometry, generator)
-            else:
-                batch = (torch.from_numpy(a).to(device) for a in batches.next())
-            spikes, truth = (a.contiguous(memory_format=memory_format) for a in batch)
-            with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
-                image, estimates = net(spikes)
-                loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            wall += time.perf_counter() - t0
-            done = step + 1
-            if not run.main:
-                continue
-            bar.update(1)
-            if done % cfg.log_every == 0 or done == cfg.steps:
-                rate = (done - tick_step) / (time.perf_counter() - tick)
-                tick, tick_step = time.perf_counter(), done
-                eta = (cfg.steps - done) / rate
-                speed = f"{rate:.2f}"
-                bar.set_postfix(loss=f"{loss.item():.4f}", steps_per_s=speed, eta=f"{eta:.0f}s")
-                log.write(
-                    kind="train",
-                    step=done,
-                    loss=loss.item(),
-                    lr=learning_rate(cfg, step),
-                    steps_per_s=rate,
-                    eta_s=eta,
-                    wall_s=wall,
-                )
-            if done % cfg.val_every == 0 or done == cfg.steps:
-                val = validate(model, val_sets["procedural"])
-                if val_sets["natural"]:
-                    val["natural"] = validate(model, val_sets["natural"])
-                if val_sets["real_video"]:
-                    val["real_video"] = validate_real_video(model, val_sets["real_video"])
-                log.write(kind="val", step=done, wall_s=wall, **val)
-                chosen = selection_score(val, selection)
-                if chosen > best:
-                    best = chosen
-                    checkpoint(run_dir / "best.pt", done, val_psnr=best, val_set=selection)
-                model.train()
-            periodic = time.monotonic() - saved_at >= CHECKPOINT_SECONDS
-            if done % cfg.checkpoint_every == 0 or done == cfg.steps or periodic:
-                checkpoint(last, done)
-                saved_at = time.monotonic()
-    finally:
-        batches.close()
+    stopping = False
+    with StopRequest() as stop:
+        try:
+            for step in range(start, cfg.steps):
+                t0 = time.perf_counter()
+                for group in optimizer.param_groups:
+                    group["lr"] = learning_rate(cfg, step)
+                if films_on_device:
+                    generator = batch_generator(cfg.seed, run.rank, step, device)
+                    batch = film_plans(batches.next(), model.config.geometry, generator)
+                else:
+                    batch = (torch.from_numpy(a).to(device) for a in batches.next())
+                spikes, truth = (a.contiguous(memory_format=memory_format) for a in batch)
+                with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
+                    image, estimates = net(spikes)
+                    loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                wall += time.perf_counter() - t0
+                done = step + 1
+                stopping = stop.agreed(run.world) and done < cfg.steps
+                if not run.main:
+                    if stopping:
+                        break
+                    continue
+                bar.update(1)
+                if done % cfg.log_every == 0 or done == cfg.steps:
+                    rate = (done - tick_step) / (time.perf_counter() - tick)
+                    tick, tick_step = time.perf_counter(), done
+                    eta = (cfg.steps - done) / rate
+                    speed = f"{rate:.2f}"
+                    bar.set_postfix(loss=f"{loss.item():.4f}", steps_per_s=speed, eta=f"{eta:.0f}s")
+                    log.write(
+                        kind="train",
+                        step=done,
+                        loss=loss.item(),
+                        lr=learning_rate(cfg, step),
+                        steps_per_s=rate,
+                        eta_s=eta,
+                        wall_s=wall,
+                    )
+                if (done % cfg.val_every == 0 and not stopping) or done == cfg.steps:
+                    val = validate(model, val_sets["procedural"])
+                    if val_sets["natural"]:
+                        val["natural"] = validate(model, val_sets["natural"])
+                    if val_sets["real_video"]:
+                        val["real_video"] = validate_real_video(model, val_sets["real_video"])
+                    log.write(kind="val", step=done, wall_s=wall, **val)
+                    chosen = selection_score(val, selection)
+                    if chosen > best:
+                        best = chosen
+                        checkpoint(run_dir / "best.pt", done, val_psnr=best, val_set=selection)
+                    model.train()
+                periodic = time.monotonic() - saved_at >= CHECKPOINT_SECONDS
+                if done % cfg.checkpoint_every == 0 or done == cfg.steps or periodic or stopping:
+                    checkpoint(last, done)
+                    saved_at = time.monotonic()
+                if stopping:
+                    log.write(kind="stopped", step=done, wall_s=wall, signal=stop.name)
+                    break
+        finally:
+            batches.close()
     bar.close()
     if run.world > 1:
         diff = replica_difference(model)
@@ -294,8 +306,9 @@ def train(cfg: TrainConfig) -> dict:
         "val_set": selection,
         "best_psnr": best,
         "last_validation": val,
+        "stopped": {"signal": stop.name, "step": done} if stopping else None,
     }
-    if run.main:
+    if run.main and not stopping:
         log.write(kind="summary", **summary)
     return summary
 
