@@ -5,12 +5,20 @@
 #   scripts/gpu_session.sh receive MANIFEST DEST # one part of a split file (receive_parts.sh)
 #   scripts/gpu_session.sh onnx                  # onnxruntime-gpu rows (after receiving its wheel)
 #   scripts/gpu_session.sh train SECONDS ARGS…   # spk2img train on cuda for at most SECONDS
+#   scripts/gpu_session.sh train-start NAME SECONDS ARGS…
+#                                 # the same in the background (its own process session, so it
+#                                 # outlives the command): the run trains in /tmp/spk2img-runs/NAME
+#                                 # while later commands send files
+#   scripts/gpu_session.sh train-stop NAME
+#                                 # Ctrl-C to it (it saves last.pt at its step), then its log,
+#                                 # last.pt and best.pt into $OUT/NAME
 set -euo pipefail
 out=${OUT:-/tmp/spk2img-out}
 mkdir -p "$out"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 ort=/tmp/spk2img-ort-gpu   # where receive installs the onnxruntime-gpu wheel
-step=${1:?torch, receive, onnx or train}
+runs=/tmp/spk2img-runs     # where train-start trains
+step=${1:?torch, receive, onnx, train, train-start or train-stop}
 shift
 case "$step" in
   torch)
@@ -46,8 +54,32 @@ case "$step" in
     timeout --signal=INT "$seconds" python3 -m spk2img train --device cuda --synthesis torch \
       --no-progress "$@" || echo "train: exit $? (a run stopped by the timeout saved last.pt at its step)"
     ;;
+  train-start)
+    name=${1:?name} seconds=${2:?seconds}
+    shift 2
+    mkdir -p "$runs/$name"
+    setsid nohup timeout --signal=INT "$seconds" python3 -m spk2img train --device cuda \
+      --synthesis torch --no-progress --run-dir "$runs/$name" "$@" \
+      > "$runs/$name/train.log" 2>&1 < /dev/null &
+    echo "training $name in the background for at most $seconds s: $runs/$name"
+    ;;
+  train-stop)
+    name=${1:?name}
+    # the training process alone (timeout, its parent, would pass the signal on twice)
+    pkill -INT -f "^python3 -m spk2img train .*--run-dir $runs/$name( |\$)" \
+      || echo "$name: not running"
+    for _ in $(seq 240); do
+      pgrep -f "spk2img train .*--run-dir $runs/$name( |\$)" > /dev/null || break
+      sleep 0.5
+    done
+    mkdir -p "$out/$name"
+    for f in train.log metrics.jsonl last.pt best.pt; do
+      if [ -f "$runs/$name/$f" ]; then cp "$runs/$name/$f" "$out/$name/"; fi
+    done
+    tail -n 3 "$runs/$name/train.log"
+    ;;
   *)
-    echo "unknown step $step: torch, receive, onnx or train" >&2
+    echo "unknown step $step: torch, receive, onnx, train, train-start or train-stop" >&2
     exit 2
     ;;
 esac

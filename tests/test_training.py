@@ -341,12 +341,15 @@ def test_the_display_share_sets_how_many_natural_samples_take_the_value_as_the_l
     assert np.allclose(display**2.2, load_photo(tmp_path / "ramp.png"), atol=1e-6)
 
 
-def test_a_stop_request_takes_the_first_signal_and_a_second_stops_at_once():
+def test_a_stop_request_takes_the_first_signal_and_a_later_second_stops_at_once():
     previous = signal.getsignal(signal.SIGTERM)
-    with StopRequest() as stop:
+    with StopRequest(again_after_s=0.2) as stop:
         assert not stop.agreed(1) and stop.name == "another process of the run"
         os.kill(os.getpid(), signal.SIGTERM)
         assert stop.agreed(1) and stop.signal == signal.SIGTERM and stop.name == "SIGTERM"
+        os.kill(os.getpid(), signal.SIGTERM)  # as timeout repeats it: the same request
+        assert stop.signal == signal.SIGTERM
+        time.sleep(0.2)
         with pytest.raises(KeyboardInterrupt):
             os.kill(os.getpid(), signal.SIGINT)
     assert signal.getsignal(signal.SIGTERM) is previous

@@ -2,7 +2,9 @@
 
 The first SIGINT (Ctrl-C) or SIGTERM asks the run to stop after the step in progress; the run
 then writes ``last.pt`` at that step and ends, and the same command resumes it. A second signal
-stops at once (a ``KeyboardInterrupt``), losing the steps since the last checkpoint.
+a second or more later stops at once (a ``KeyboardInterrupt``), losing the steps since the last
+checkpoint; one sooner is the same request again (``timeout`` sends its signal to the command
+and then to the command's process group, which holds the command too).
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 
 import torch
 import torch.distributed as dist
@@ -19,10 +22,13 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 class StopRequest:
     """Catches :data:`SIGNALS` while entered (in the main thread only; elsewhere it never asks
-    to stop). ``signal`` is the first one received, or None."""
+    to stop). ``signal`` is the first one received, or None; one that comes ``again_after_s``
+    seconds or more after it raises ``KeyboardInterrupt``."""
 
-    def __init__(self) -> None:
+    def __init__(self, again_after_s: float = 1.0) -> None:
         self.signal: signal.Signals | None = None
+        self.again_after_s = again_after_s
+        self._first_at = 0.0
         self._previous: dict[int, object] = {}
 
     def __enter__(self) -> StopRequest:
@@ -37,11 +43,13 @@ class StopRequest:
 
     def _handle(self, number: int, frame) -> None:
         if self.signal is not None:
-            raise KeyboardInterrupt
-        self.signal = signal.Signals(number)
+            if time.monotonic() - self._first_at >= self.again_after_s:
+                raise KeyboardInterrupt
+            return
+        self.signal, self._first_at = signal.Signals(number), time.monotonic()
         print(
             f"spk2img train: {self.signal.name}: stopping after this step, which is then saved "
-            "(again: stop at once)",
+            "(again, a second or more later: stop at once)",
             file=sys.stderr,
             flush=True,
         )
