@@ -17,7 +17,7 @@ out=${OUT:-/tmp/spk2img-out}
 mkdir -p "$out"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 ort=/tmp/spk2img-ort-gpu   # where receive installs the onnxruntime-gpu wheel
-runs=/tmp/spk2img-runs     # where train-start trains
+runs=${SPK2IMG_RUNS:-/tmp/spk2img-runs}   # where train-start trains
 step=${1:?torch, receive, onnx, train, train-start or train-stop}
 shift
 case "$step" in

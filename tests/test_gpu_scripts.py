@@ -2,9 +2,14 @@
 
 import importlib.util
 import json
+import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -34,3 +39,43 @@ def test_torch_inference_speed_times_each_precision_and_batch_and_its_error(tmp_
         assert row["max_abs_vs_fp32"] <= limit, row
     with pytest.raises(SystemExit):
         script.main(["--device", "cpu", "--precisions", "bf16"])
+
+
+def test_a_gpu_session_trains_in_the_background_and_brings_the_run_back(tmp_path):
+    """``gpu_session.sh train-start`` returns while the run trains on (on the CPU here: the last
+    ``--device`` wins); ``train-stop`` stops it at a step it saves and brings its log, metrics
+    and state into ``$OUT``."""
+    env = {
+        **os.environ,
+        "OUT": str(tmp_path / "out"),
+        "SPK2IMG_RUNS": str(tmp_path / "runs"),
+        "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",  # its python3
+    }
+    flags = "--member tiny --patch 16 --batch-size 2 --val-per-class 1 --log-every 1 --workers 0"
+    long = "--steps 100000 --val-every 100000 --checkpoint-every 100000 --device cpu"
+
+    def session(*args: str) -> str:
+        cmd = ["bash", str(ROOT / "scripts" / "gpu_session.sh"), *args]
+        done = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=180)
+        assert done.returncode == 0, done.stderr
+        return done.stdout
+
+    assert "in the background" in session("train-start", "t", "300", *flags.split(), *long.split())
+    metrics = tmp_path / "runs" / "t" / "metrics.jsonl"
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and (
+            not metrics.is_file() or metrics.read_text().count('"kind": "train"') < 2
+        ):
+            time.sleep(0.2)
+        said = session("train-stop", "t")
+    finally:  # never leave the background run behind a failure
+        subprocess.run(["pkill", "-KILL", "-f", f"--run-dir {tmp_path / 'runs' / 't'}"])
+    brought = tmp_path / "out" / "t"
+    records = [json.loads(line) for line in (brought / "metrics.jsonl").read_text().splitlines()]
+    (stopped,) = [r for r in records if r["kind"] == "stopped"]
+    assert stopped["signal"] == "SIGINT" and stopped["step"] >= 2
+    assert torch.load(brought / "last.pt", weights_only=True)["step"] == stopped["step"]
+    assert f"stopped at step {stopped['step']} of 100000" in said
+    assert "Traceback" not in (brought / "train.log").read_text()
+    assert "not running" in session("train-stop", "t")
