@@ -7,7 +7,9 @@
 all windows, per speed bin, per clip, with the spread over seeds (the standard deviation of the
 overall mean between seeds) and over clips; the sections (``## ...``) written below the tables
 in ``--md`` are kept. ``--add`` keeps the methods already in ``--json``
-(scored on the same windows: the same clips and seeds) and scores only the models given.
+(scored on the same windows: the same clips and seeds) and scores only the models given. A
+model is a shipped model's name or ``NAME=GRAPH.onnx``, an exported graph scored under NAME (a
+candidate before it ships: ``--add`` to a copy of the JSON compares it with the shipped ones).
 """
 
 from __future__ import annotations
@@ -36,8 +38,9 @@ def classical_methods() -> dict[str, Method]:
     }
 
 
-def network_method(name: str, threads: int) -> Method:
-    return network_scorer(load_network(name, threads=threads, block_reuse=False).predict)
+def network_method(model: str, threads: int) -> Method:
+    """``model``: a shipped model's name or an exported graph's path."""
+    return network_scorer(load_network(model, threads=threads, block_reuse=False).predict)
 
 
 def markdown(results: dict) -> str:
@@ -82,7 +85,7 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data", type=Path, action="append", required=True)
     p.add_argument("--models", default="default,real,tiny,tiny-real")
@@ -91,7 +94,7 @@ def main() -> None:
     p.add_argument("--json", type=Path, default=Path("docs/real_video.json"))
     p.add_argument("--md", type=Path, default=Path("docs/real_video.md"))
     p.add_argument("--add", action="store_true", help="add the models to --json's methods")
-    args = p.parse_args()
+    args = p.parse_args(argv)
     start = time.perf_counter()
     windows = real_video_set(args.data, seeds=args.seeds)
     if not windows:
@@ -101,8 +104,9 @@ def main() -> None:
     if earlier and (earlier["windows"], earlier["seeds"]) != (len(windows), args.seeds):
         raise SystemExit(f"--add: {args.json} was scored on other windows or seeds")
     methods = {} if earlier else classical_methods()
-    for name in filter(None, args.models.split(",")):
-        methods[name] = network_method(name, args.threads)
+    for spec in filter(None, args.models.split(",")):
+        name, _, graph = spec.partition("=")
+        methods[name] = network_method(graph or name, args.threads)
     results = dict(earlier["methods"]) if earlier else {}
     for name, method in methods.items():
         start = time.perf_counter()

@@ -4,6 +4,10 @@ the renderer defines, and the clips kept out of training."""
 
 from __future__ import annotations
 
+import importlib.util
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given
@@ -28,6 +32,7 @@ from spk2img.sim.sources import SourceIndex, to_light
 from spk2img.training.model_card import real_video_section
 
 H, W = 64, 96
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def moving_texture(frames: int, px_per_frame: float) -> tuple[np.ndarray, ...]:
@@ -135,3 +140,27 @@ def test_scores_per_bin_clip_and_seed_and_the_cards_section():
     assert (
         "| network | 40.00 | " in section and "Per clip, benchmark bin: a 40.0, b 40.0" in section
     )
+
+
+def test_the_script_scores_a_graph_by_path_beside_the_shipped_model_it_is(data_dir, tmp_path):
+    """``--models tiny,candidate=GRAPH.onnx`` (the shipped ``tiny``'s own graph): the same
+    scores under both names; ``--add`` keeps them and the written notes, lists each date once
+    and refuses a JSON scored on other windows."""
+    spec = importlib.util.spec_from_file_location("rvv", ROOT / "scripts/real_video_validation.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    graph = ROOT / "spk2img/assets/models/spk2img-tiny.onnx"
+    out = ["--json", str(tmp_path / "rv.json"), "--md", str(tmp_path / "rv.md")]
+    base = ["--data", str(data_dir), "--seeds", "1", "--threads", "1", *out]
+    script.main([*base, "--models", f"tiny,candidate={graph}"])
+    methods = json.loads((tmp_path / "rv.json").read_text())["methods"]
+    assert list(methods) == ["TFP-41", "TFP, best window (oracle)", "TFI", "tiny", "candidate"]
+    assert methods["candidate"]["psnr"] == pytest.approx(methods["tiny"]["psnr"], abs=1e-9)
+    assert methods["tiny"]["psnr"] > methods["TFP-41"]["psnr"]
+    (tmp_path / "rv.md").write_text((tmp_path / "rv.md").read_text() + "\n## Reading it\nkept\n")
+    script.main([*base, "--models", f"again={graph}", "--add"])
+    written = json.loads((tmp_path / "rv.json").read_text())
+    assert list(written["methods"])[-1] == "again" and " and " not in written["date"]
+    assert (tmp_path / "rv.md").read_text().endswith("## Reading it\nkept\n")
+    with pytest.raises(SystemExit, match="other windows or seeds"):
+        script.main([*base[:2], "--seeds", "2", *base[4:], "--models", "tiny", "--add"])
