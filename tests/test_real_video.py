@@ -151,7 +151,8 @@ def test_the_script_scores_a_graph_by_path_beside_the_shipped_model_it_is(data_d
     spec.loader.exec_module(script)
     graph = ROOT / "spk2img/assets/models/spk2img-tiny.onnx"
     out = ["--json", str(tmp_path / "rv.json"), "--md", str(tmp_path / "rv.md")]
-    base = ["--data", str(data_dir), "--seeds", "1", "--threads", "1", *out]
+    data = ["--data", str(data_dir), "--threads", "1", *out]
+    base = [*data, "--seeds", "1"]
     script.main([*base, "--models", f"tiny,candidate={graph}"])
     methods = json.loads((tmp_path / "rv.json").read_text())["methods"]
     assert list(methods) == ["TFP-41", "TFP, best window (oracle)", "TFI", "tiny", "candidate"]
@@ -163,4 +164,4 @@ def test_the_script_scores_a_graph_by_path_beside_the_shipped_model_it_is(data_d
     assert list(written["methods"])[-1] == "again" and " and " not in written["date"]
     assert (tmp_path / "rv.md").read_text().endswith("## Reading it\nkept\n")
     with pytest.raises(SystemExit, match="other windows or seeds"):
-        script.main([*base[:2], "--seeds", "2", *base[4:], "--models", "tiny", "--add"])
+        script.main([*data, "--seeds", "2", "--models", "tiny", "--add"])

@@ -12,6 +12,7 @@ import os
 import platform
 import sys
 import time
+from contextlib import closing
 from pathlib import Path
 
 import numpy as np
@@ -228,70 +229,69 @@ def train(cfg: TrainConfig) -> dict:
     val: dict = {}
     tick, tick_step = time.perf_counter(), start
     saved_at = time.monotonic()
-    batches = Batches(maker, cfg.batch_size, start, cfg.workers, make)
     stopping = False
-    with StopRequest() as stop:
-        try:
-            for step in range(start, cfg.steps):
-                t0 = time.perf_counter()
-                for group in optimizer.param_groups:
-                    group["lr"] = learning_rate(cfg, step)
-                if films_on_device:
-                    generator = batch_generator(cfg.seed, run.rank, step, device)
-                    batch = film_plans(batches.next(), model.config.geometry, generator)
-                else:
-                    batch = (torch.from_numpy(a).to(device) for a in batches.next())
-                spikes, truth = (a.contiguous(memory_format=memory_format) for a in batch)
-                with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
-                    image, estimates = net(spikes)
-                    loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
-                wall += time.perf_counter() - t0
-                done = step + 1
-                stopping = stop.agreed(run.world) and done < cfg.steps
-                if not run.main:
-                    if stopping:
-                        break
-                    continue
-                bar.update(1)
-                if done % cfg.log_every == 0 or done == cfg.steps:
-                    rate = (done - tick_step) / (time.perf_counter() - tick)
-                    tick, tick_step = time.perf_counter(), done
-                    eta = (cfg.steps - done) / rate
-                    speed = f"{rate:.2f}"
-                    bar.set_postfix(loss=f"{loss.item():.4f}", steps_per_s=speed, eta=f"{eta:.0f}s")
-                    log.write(
-                        kind="train",
-                        step=done,
-                        loss=loss.item(),
-                        lr=learning_rate(cfg, step),
-                        steps_per_s=rate,
-                        eta_s=eta,
-                        wall_s=wall,
-                    )
-                if (done % cfg.val_every == 0 and not stopping) or done == cfg.steps:
-                    val = validate(model, val_sets["procedural"])
-                    if val_sets["natural"]:
-                        val["natural"] = validate(model, val_sets["natural"])
-                    if val_sets["real_video"]:
-                        val["real_video"] = validate_real_video(model, val_sets["real_video"])
-                    log.write(kind="val", step=done, wall_s=wall, **val)
-                    chosen = selection_score(val, selection)
-                    if chosen > best:
-                        best = chosen
-                        checkpoint(run_dir / "best.pt", done, val_psnr=best, val_set=selection)
-                    model.train()
-                periodic = time.monotonic() - saved_at >= CHECKPOINT_SECONDS
-                if done % cfg.checkpoint_every == 0 or done == cfg.steps or periodic or stopping:
-                    checkpoint(last, done)
-                    saved_at = time.monotonic()
+    with (
+        StopRequest() as stop,
+        closing(Batches(maker, cfg.batch_size, start, cfg.workers, make)) as batches,
+    ):
+        for step in range(start, cfg.steps):
+            t0 = time.perf_counter()
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate(cfg, step)
+            if films_on_device:
+                generator = batch_generator(cfg.seed, run.rank, step, device)
+                batch = film_plans(batches.next(), model.config.geometry, generator)
+            else:
+                batch = (torch.from_numpy(a).to(device) for a in batches.next())
+            spikes, truth = (a.contiguous(memory_format=memory_format) for a in batch)
+            with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
+                image, estimates = net(spikes)
+                loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            wall += time.perf_counter() - t0
+            done = step + 1
+            stopping = stop.agreed(run.world) and done < cfg.steps
+            if not run.main:
                 if stopping:
-                    log.write(kind="stopped", step=done, wall_s=wall, signal=stop.name)
                     break
-        finally:
-            batches.close()
+                continue
+            bar.update(1)
+            if done % cfg.log_every == 0 or done == cfg.steps:
+                rate = (done - tick_step) / (time.perf_counter() - tick)
+                tick, tick_step = time.perf_counter(), done
+                eta = (cfg.steps - done) / rate
+                speed = f"{rate:.2f}"
+                bar.set_postfix(loss=f"{loss.item():.4f}", steps_per_s=speed, eta=f"{eta:.0f}s")
+                log.write(
+                    kind="train",
+                    step=done,
+                    loss=loss.item(),
+                    lr=learning_rate(cfg, step),
+                    steps_per_s=rate,
+                    eta_s=eta,
+                    wall_s=wall,
+                )
+            if (done % cfg.val_every == 0 and not stopping) or done == cfg.steps:
+                val = validate(model, val_sets["procedural"])
+                if val_sets["natural"]:
+                    val["natural"] = validate(model, val_sets["natural"])
+                if val_sets["real_video"]:
+                    val["real_video"] = validate_real_video(model, val_sets["real_video"])
+                log.write(kind="val", step=done, wall_s=wall, **val)
+                chosen = selection_score(val, selection)
+                if chosen > best:
+                    best = chosen
+                    checkpoint(run_dir / "best.pt", done, val_psnr=best, val_set=selection)
+                model.train()
+            periodic = time.monotonic() - saved_at >= CHECKPOINT_SECONDS
+            if done % cfg.checkpoint_every == 0 or done == cfg.steps or periodic or stopping:
+                checkpoint(last, done)
+                saved_at = time.monotonic()
+            if stopping:
+                log.write(kind="stopped", step=done, wall_s=wall, signal=stop.name)
+                break
     bar.close()
     if run.world > 1:
         diff = replica_difference(model)
