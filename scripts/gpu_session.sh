@@ -29,7 +29,8 @@ case "$step" in
     timeout 240 python3 scripts/torch_inference_speed.py --device cuda --compile \
       --json "$out/torch_inference.json" || echo "torch inference rows: exit $?"
     timeout 240 python3 scripts/synthesis_speed.py --device cuda --workers 8 --batch-size 64 \
-      --patch 64 --steps 30 --synthesis-batches 8 --json "$out/synthesis_speed_gpu.json" \
+      --patch 64 --steps 30 --synthesis-batches 8 --precisions bf16 \
+      --json "$out/synthesis_speed_gpu.json" \
       || echo "synthesis speed: exit $?"
     ;;
   receive)

@@ -1,16 +1,17 @@
 """Samples per second of training with each spike simulator, side by side in one run.
 
 ``python scripts/synthesis_speed.py [--data DATA] [--member small] [--batch-size 16] [--patch 48]
-[--device cpu] [--workers 1] [--steps 12] [--json docs/synthesis_speed.json]`` measures, on one
-device, in one process:
+[--device cpu] [--workers 1] [--steps 12] [--precisions fp32,bf16] [--json
+docs/synthesis_speed.json]`` measures, on one device, in one process:
 
 - **synthesis alone**, in this process (one thread): training samples a second that the numpy
   simulator makes (``SampleMaker.batch``, what a worker process does today), and that torch
   synthesis makes (``SampleMaker.plans`` in a worker, ``film_plans`` on the device), with the
   time each of its two parts takes;
 - **training**: ``spk2img train`` for ``--steps`` optimiser steps with ``--synthesis numpy``,
-  then with ``--synthesis torch``, the same member, batch, patch, data and workers; samples a
-  second are the median over its logged intervals after the first (warm-up).
+  then with ``--synthesis torch``, in each of ``--precisions`` (``spk2img train --precision``:
+  fp32, bf16 autocast), the same member, batch, patch, data and workers; samples a second are
+  the median over its logged intervals after the first (warm-up).
 
 The JSON holds every figure with the device, threads and workers.
 """
@@ -77,7 +78,7 @@ def synthesis_rates(args, device: torch.device) -> dict:
     }
 
 
-def training_rate(args, synthesis: str, run_dir: Path) -> float:
+def training_rate(args, synthesis: str, precision: str, run_dir: Path) -> float:
     """Median training samples a second of a short ``spk2img train`` run."""
     cfg = TrainConfig(
         member=args.member,
@@ -90,6 +91,7 @@ def training_rate(args, synthesis: str, run_dir: Path) -> float:
         workers=args.workers,
         device=args.device,
         synthesis=synthesis,
+        precision=precision,
         threads=args.threads,
         log_every=2,
         val_every=10**9,
@@ -103,6 +105,19 @@ def training_rate(args, synthesis: str, run_dir: Path) -> float:
     return statistics.median(rates) * args.batch_size
 
 
+def cpu_name() -> str:
+    """The CPU's cores, model and whether it has bf16 matrix units (Intel AMX), from
+    /proc/cpuinfo where there is one."""
+    info = Path("/proc/cpuinfo")
+    lines = info.read_text().splitlines() if info.is_file() else []
+    model = next(
+        (line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), ""
+    )
+    flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
+    units = "AMX bf16" if "amx_bf16" in flags else "no AMX"
+    return f"{os.cpu_count()} cores, {model or platform.machine()} ({units})"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", action="append", default=[], help="none: procedural only")
@@ -114,6 +129,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--steps", type=int, default=12)
     parser.add_argument("--synthesis-batches", type=int, default=4)
+    parser.add_argument("--precisions", default="fp32,bf16", help="comma-separated")
     parser.add_argument("--json", type=Path, default=Path("docs/synthesis_speed.json"))
     args = parser.parse_args()
     warnings.simplefilter("ignore", UserWarning)  # the index's held-out counts
@@ -121,7 +137,7 @@ def main() -> None:
     device = torch.device(args.device)
     result = {
         "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
-        "cpu": f"{os.cpu_count()} cores, {platform.processor() or platform.machine()}",
+        "cpu": cpu_name(),
         "torch": torch.__version__,
         "member": args.member,
         "batch_size": args.batch_size,
@@ -132,8 +148,13 @@ def main() -> None:
     }
     with tempfile.TemporaryDirectory() as scratch:
         result["training_samples_per_s"] = {
-            synthesis: training_rate(args, synthesis, Path(scratch, synthesis))
-            for synthesis in ("numpy", "torch")
+            precision: {
+                synthesis: training_rate(
+                    args, synthesis, precision, Path(scratch, f"{precision}-{synthesis}")
+                )
+                for synthesis in ("numpy", "torch")
+            }
+            for precision in args.precisions.split(",")
         }
     print(json.dumps(result, indent=1))
     args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -1,3 +1,4 @@
+import dataclasses
 import json
 from pathlib import Path
 
@@ -6,7 +7,7 @@ import pytest
 from spk2img.errors import InputError
 from spk2img.runtime.onnx_backend import graph_metadata, shipped_models
 from spk2img.training.campaign import lineage, load_campaign, samples_before
-from spk2img.training.campaign_report import curves_plot, markdown
+from spk2img.training.campaign_report import curves_plot, hardware_name, markdown
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = "a 2-core x86_64 CPU, 1 torch thread(s)"
@@ -88,6 +89,23 @@ def test_runs_count_their_steps_windows_and_optimiser_time(campaign):
     expected = {"natural_ideal": 32.0, "natural_fitted": 24.0, "real_video": 28.0}
     assert [(v.step, v.psnr) for v in child.validations] == [(60, expected)]
     assert root.validations[0].psnr == {"natural_ideal": 30.0, "natural_fitted": 22.0}
+
+
+def test_a_run_resumed_in_other_arithmetic_or_on_a_gpu_names_each_hardware_in_order(tmp_path):
+    """The settings come from the first run record, the hardware from every one (repeats once):
+    the report's short names say fp32 CPU, then bf16 CPU, then the GPU."""
+    bf16 = f"{CPU}, bf16 autocast"
+    gpu = "NVIDIA H200 (CUDA, bf16 autocast)"
+    records = [_run_record(0, 8), _train(10, 5.0), _run_record(10, 8), _train(20, 9.0)]
+    records += [_run_record(20, 8) | {"hardware": bf16}, _train(30, 11.0)]
+    records += [_run_record(30, 8) | {"hardware": gpu}, _train(40, 11.5)]
+    _write(tmp_path, {"r": records}, {})
+    (run,) = load_campaign(tmp_path).values()
+    assert run.settings.on_gpu and (run.steps, run.wall_s) == (40, 11.5)
+    expected = "CPU, 1 thread; then CPU, 1 thread, bf16; then NVIDIA H200"
+    assert hardware_name(run.settings) == expected
+    two = "a 2-core x86_64 CPU, 2 torch thread(s), bf16 autocast"
+    assert hardware_name(dataclasses.replace(run.settings, hardware=two)) == "CPU, 2 threads, bf16"
 
 
 def test_a_lineage_counts_the_windows_its_ancestors_saw_up_to_where_each_child_started(campaign):

@@ -25,9 +25,15 @@ from spk2img.errors import InputError
 CAMPAIGN_FILE = "campaign.json"
 
 
+THEN = "; then "
+"""What joins the hardware of a run resumed on other hardware (:class:`RunSettings`)."""
+
+
 @dataclass(frozen=True)
 class RunSettings:
-    """What trained a run: the family ``member``, windows per step, patch side (px), hardware."""
+    """What trained a run: the family ``member``, windows per step, patch side (px), hardware
+    (training's words for it; a run resumed on other hardware or in other arithmetic lists
+    each, in order, joined by :data:`THEN`)."""
 
     member: str
     batch_size: int
@@ -88,12 +94,14 @@ class Run:
 def read_run(name: str, records: list[dict], entry: dict) -> Run:
     """The :class:`Run` ``name`` from its metrics ``records`` (``metrics.jsonl``, in order) and
     its ``entry`` of the campaign file (``{}`` for none); settings from its first ``run``
-    record, else from the entry; its start from the entry, else from that record (an input
-    error where neither says)."""
-    logged = next((r for r in records if r["kind"] == "run"), None)
+    record (the hardware from all of them), else from the entry; its start from the entry,
+    else from that record (an input error where neither says)."""
+    starts = [r for r in records if r["kind"] == "run"]
+    logged = starts[0] if starts else None
     if logged is not None:
         tc = logged["train_config"]
-        settings = RunSettings(tc["member"], tc["batch_size"], tc["patch"], logged["hardware"])
+        hardware = THEN.join(dict.fromkeys(r["hardware"] for r in starts))
+        settings = RunSettings(tc["member"], tc["batch_size"], tc["patch"], hardware)
     elif "settings" in entry:
         settings = RunSettings(**entry["settings"])
     else:

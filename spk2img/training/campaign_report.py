@@ -18,7 +18,7 @@ from pathlib import Path
 
 from spk2img.markdown import table_head, table_row
 
-from .campaign import VALIDATIONS, Run, RunSettings, lineage, load_campaign, samples_before
+from .campaign import THEN, VALIDATIONS, Run, RunSettings, lineage, load_campaign, samples_before
 
 GENERATED = ("# Training campaign", "## By member and hardware", "## Runs", "## Curves")
 METRIC_LABELS = {name: f"{words} (dB)" for name, (_, _, words) in VALIDATIONS.items()}
@@ -26,11 +26,18 @@ MEMBER_ORDER = ("paper", "small", "lite", "cpu", "tiny")
 
 
 def hardware_name(settings: RunSettings) -> str:
-    """A short name of a run's hardware: the GPU's, or ``CPU, N thread(s)``."""
-    if settings.on_gpu:
-        return settings.hardware.split(" (")[0]
-    threads = int(settings.hardware.rsplit(", ", 1)[1].split()[0])
-    return f"CPU, {threads} thread{'s' if threads > 1 else ''}"
+    """A short name of a run's hardware: the GPU's, or ``CPU, N thread(s)`` (and ``, bf16``
+    for bf16 autocast on the CPU); each of a run resumed on other hardware, in order."""
+    return THEN.join(map(_short_hardware, settings.hardware.split(THEN)))
+
+
+def _short_hardware(words: str) -> str:
+    """:func:`hardware_name` of one hardware as training describes it."""
+    if "CUDA" in words:
+        return words.split(" (")[0]
+    threads = int(words.split(" torch thread")[0].rsplit(" ", 1)[1])
+    bf16 = ", bf16" if words.endswith("bf16 autocast") else ""
+    return f"CPU, {threads} thread{'s' if threads > 1 else ''}{bf16}"
 
 
 def lineage_order(runs: dict[str, Run]) -> list[str]:

@@ -128,7 +128,8 @@ def train(cfg: TrainConfig) -> dict:
             f"--patch {cfg.patch}: must be a multiple of {model.config.size_multiple} for "
             f"{cfg.member}"
         )
-    memory_format = training_memory_format(device)
+    bf16 = cfg.autocasts_bf16()
+    memory_format = training_memory_format(device, bf16)
     model.to(device, memory_format=memory_format)
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     start, wall = 0, 0.0
@@ -152,7 +153,7 @@ def train(cfg: TrainConfig) -> dict:
     origin = {  # what trains and from what: in every checkpoint and each (re)start's log record
         "member": cfg.member,
         "train_config": dataclasses.asdict(cfg),
-        "hardware": describe_hardware(device, cfg.threads),
+        "hardware": describe_hardware(device, cfg.threads, bf16),
         "commit": commit,
         "init_from": init_from,
     }
@@ -244,7 +245,7 @@ def train(cfg: TrainConfig) -> dict:
             else:
                 batch = (torch.from_numpy(a).to(device) for a in batches.next())
             spikes, truth = (a.contiguous(memory_format=memory_format) for a in batch)
-            with torch.autocast(device.type, torch.bfloat16, enabled=device.type == "cuda"):
+            with torch.autocast(device.type, torch.bfloat16, enabled=bf16):
                 image, estimates = net(spikes)
                 loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
             optimizer.zero_grad(set_to_none=True)
@@ -371,21 +372,24 @@ def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
     )
 
 
-def describe_hardware(device: torch.device, threads: int) -> str:
-    """What trains: the GPU's name, or the CPU's cores and the threads used."""
+def describe_hardware(device: torch.device, threads: int, bf16: bool) -> str:
+    """What trains and how: the GPU's name, or the CPU's cores and the threads used, and the
+    arithmetic where it is bf16 autocast."""
+    arithmetic = ", bf16 autocast" if bf16 else ""
     if device.type == "cuda":
-        return f"{torch.cuda.get_device_name(device)} (CUDA, bf16 autocast)"
+        return f"{torch.cuda.get_device_name(device)} (CUDA{arithmetic})"
     cpu = platform.processor() or platform.machine()
-    return f"a {os.cpu_count()}-core {cpu} CPU, {threads} torch thread(s)"
+    return f"a {os.cpu_count()}-core {cpu} CPU, {threads} torch thread(s){arithmetic}"
 
 
-def training_memory_format(device: torch.device) -> torch.memory_format:
+def training_memory_format(device: torch.device, bf16: bool) -> torch.memory_format:
     """The memory order of weights and batches: channels-last on CUDA (what the GPU runs used;
-    cuDNN's bf16 convolutions want it), the default order on the CPU, where a training step of
-    every member took less time in it (alternated steps of batch 8 at 64x64, one thread, torch
-    2.13: `small` 15.7 s against 18.7, `cpu` 1.68 against 1.99, `tiny` 6.0 against 6.6, `lite`
-    3.45 against 3.62, medians)."""
-    return torch.channels_last if device.type == "cuda" else torch.contiguous_format
+    cuDNN's bf16 convolutions want it) and for bf16 on the CPU (oneDNN's bf16 convolutions:
+    alternated steps of batch 8 at 64x64, one thread of an Intel Xeon with AMX, torch 2.13:
+    `small` 6.0 s against 7.0, `cpu` 0.91 against 1.04, medians), the default order for fp32 on
+    the CPU, where a step of every member took less time in it on an AMD EPYC (`small` 15.7 s
+    against 18.7, `cpu` 1.68 against 1.99, `tiny` 6.0 against 6.6, `lite` 3.45 against 3.62)."""
+    return torch.channels_last if device.type == "cuda" or bf16 else torch.contiguous_format
 
 
 def training_device(name: str) -> torch.device:
