@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import tempfile
 import time
@@ -31,6 +30,7 @@ from pathlib import Path
 import torch
 
 from spk2img.evaluation.natural_validation import NEVER_TRAINED
+from spk2img.hardware import cpu_words
 from spk2img.model.config import get_config
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.sim.sources import SourceIndex
@@ -105,19 +105,6 @@ def training_rate(args, synthesis: str, precision: str, run_dir: Path) -> float:
     return statistics.median(rates) * args.batch_size
 
 
-def cpu_name() -> str:
-    """The CPU's cores, model and whether it has bf16 matrix units (Intel AMX), from
-    /proc/cpuinfo where there is one."""
-    info = Path("/proc/cpuinfo")
-    lines = info.read_text().splitlines() if info.is_file() else []
-    model = next(
-        (line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), ""
-    )
-    flags = next((line.split(":", 1)[1].split() for line in lines if line.startswith("flags")), [])
-    units = "AMX bf16" if "amx_bf16" in flags else "no AMX"
-    return f"{os.cpu_count()} cores, {model or platform.machine()} ({units})"
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", action="append", default=[], help="none: procedural only")
@@ -137,7 +124,7 @@ def main() -> None:
     device = torch.device(args.device)
     result = {
         "device": torch.cuda.get_device_name() if device.type == "cuda" else "cpu",
-        "cpu": cpu_name(),
+        "cpu": f"{os.cpu_count()} cores, {cpu_words()}",
         "torch": torch.__version__,
         "member": args.member,
         "batch_size": args.batch_size,

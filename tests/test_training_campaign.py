@@ -93,11 +93,14 @@ def test_runs_count_their_steps_windows_and_optimiser_time(campaign):
 
 def test_a_run_resumed_in_other_arithmetic_or_on_a_gpu_names_each_hardware_in_order(tmp_path):
     """The settings come from the first run record, the hardware from every one (repeats once):
-    the report's short names say fp32 CPU, then bf16 CPU, then the GPU."""
+    the report's short names say fp32 CPU, then bf16 CPU (once, with or without the CPU's model
+    in its words), then the GPU."""
     bf16 = f"{CPU}, bf16 autocast"
     gpu = "NVIDIA H200 (CUDA, bf16 autocast)"
     records = [_run_record(0, 8), _train(10, 5.0), _run_record(10, 8), _train(20, 9.0)]
     records += [_run_record(20, 8) | {"hardware": bf16}, _train(30, 11.0)]
+    named = "a 2-core Intel(R) Xeon(R) Processor (AMX bf16) CPU, 1 torch thread(s), bf16 autocast"
+    records += [_run_record(25, 8) | {"hardware": named}, _train(30, 11.0)]  # the same, named
     records += [_run_record(30, 8) | {"hardware": gpu}, _train(40, 11.5)]
     _write(tmp_path, {"r": records}, {})
     (run,) = load_campaign(tmp_path).values()

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.scoring import score_images
+from spk2img.hardware import cpu_model
 from spk2img.model.config import MEMBERS
 
 from . import artifacts, gpu
@@ -503,7 +504,7 @@ def progress_text(entry: dict) -> str:
 def machine() -> dict:
     """CPU model (``/proc/cpuinfo``), cores, memory and software versions of this machine."""
     info = {
-        "cpu": platform.processor() or platform.machine(),
+        "cpu": cpu_model(),
         "cores": os.cpu_count(),
         "memory_gib": None,
         "python": platform.python_version(),
@@ -513,14 +514,6 @@ def machine() -> dict:
         info["cores_available"] = len(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
         info["cores_available"] = os.cpu_count()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        models = [
-            line.split(":", 1)[1].strip()
-            for line in cpuinfo.read_text().splitlines()
-            if line.startswith("model name")
-        ]
-        info["cpu"] = models[0] if models else info["cpu"]
     meminfo = Path("/proc/meminfo")
     if meminfo.is_file():
         total_kib = int(meminfo.read_text().split("MemTotal:")[1].split()[0])

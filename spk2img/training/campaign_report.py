@@ -27,8 +27,8 @@ MEMBER_ORDER = ("paper", "small", "lite", "cpu", "tiny")
 
 def hardware_name(settings: RunSettings) -> str:
     """A short name of a run's hardware: the GPU's, or ``CPU, N thread(s)`` (and ``, bf16``
-    for bf16 autocast on the CPU); each of a run resumed on other hardware, in order."""
-    return THEN.join(map(_short_hardware, settings.hardware.split(THEN)))
+    for bf16 autocast on the CPU); each of a run resumed on other hardware, in order (once)."""
+    return THEN.join(dict.fromkeys(map(_short_hardware, settings.hardware.split(THEN))))
 
 
 def _short_hardware(words: str) -> str:

@@ -9,7 +9,6 @@ import dataclasses
 import json
 import math
 import os
-import platform
 import sys
 import time
 from contextlib import closing
@@ -25,6 +24,7 @@ from spk2img.errors import InputError
 from spk2img.evaluation.natural_validation import NEVER_TRAINED, natural_validation_set
 from spk2img.evaluation.real_video import real_video_scores, real_video_set
 from spk2img.evaluation.scoring import baseline_scores, network_scorer, score, validation_set
+from spk2img.hardware import cpu_words
 from spk2img.model.checkpoint import (
     config_to_dict,
     load_checkpoint,
@@ -373,13 +373,12 @@ def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
 
 
 def describe_hardware(device: torch.device, threads: int, bf16: bool) -> str:
-    """What trains and how: the GPU's name, or the CPU's cores and the threads used, and the
-    arithmetic where it is bf16 autocast."""
+    """What trains and how: the GPU's name, or the CPU's cores, model (and bf16 matrix units)
+    and the threads used, and the arithmetic where it is bf16 autocast."""
     arithmetic = ", bf16 autocast" if bf16 else ""
     if device.type == "cuda":
         return f"{torch.cuda.get_device_name(device)} (CUDA{arithmetic})"
-    cpu = platform.processor() or platform.machine()
-    return f"a {os.cpu_count()}-core {cpu} CPU, {threads} torch thread(s){arithmetic}"
+    return f"a {os.cpu_count()}-core {cpu_words()} CPU, {threads} torch thread(s){arithmetic}"
 
 
 def training_memory_format(device: torch.device, bf16: bool) -> torch.memory_format:
