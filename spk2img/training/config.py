@@ -89,7 +89,7 @@ class TrainConfig:
         "auto",
         "the training steps' arithmetic: fp32; bf16, autocast to bfloat16 (convolutions in "
         "bf16, the loss and the weights in fp32), on a GPU and on a CPU with bf16 matrix units "
-        "(Intel AMX: about twice as fast as fp32; slower than fp32 on a CPU without them); "
+        "(Intel AMX: about twice as fast as fp32; on a CPU without them time both first); "
         "auto: bf16 on cuda, fp32 on cpu",
         PRECISIONS,
     )
