@@ -53,19 +53,22 @@ def modulated_deform_conv2d(
 
     # sampling positions in input pixels, (b, groups * K, h_out, w_out) each: channel
     # g * K + k is tap k of group g, as in the mask (every tensor stays 4-D: the symbolic
-    # shapes of the export stay few)
-    tap_y = torch.arange(kh, dtype=x.dtype, device=x.device) * dilation - padding
-    tap_x = torch.arange(kw, dtype=x.dtype, device=x.device) * dilation - padding
+    # shapes of the export stay few). In float32 at least, sampled from an input as wide: under
+    # bf16 autocast a position of 37.3 px would round to 37.25 (and 300.3 to 300)
+    exact = torch.promote_types(x.dtype, torch.float32)
+    tap_y = torch.arange(kh, dtype=exact, device=x.device) * dilation - padding
+    tap_x = torch.arange(kw, dtype=exact, device=x.device) * dilation - padding
     tap_y = tap_y.repeat_interleave(kw).repeat(groups).view(1, -1, 1, 1)  # i of k = i * kw + j
     tap_x = tap_x.repeat(kh * groups).view(1, -1, 1, 1)  # j of k = i * kw + j
-    rows = torch.arange(h_out, dtype=x.dtype, device=x.device).view(1, 1, -1, 1)
-    cols = torch.arange(w_out, dtype=x.dtype, device=x.device).view(1, 1, 1, -1)
+    rows = torch.arange(h_out, dtype=exact, device=x.device).view(1, 1, -1, 1)
+    cols = torch.arange(w_out, dtype=exact, device=x.device).view(1, 1, 1, -1)
+    offset = offset.to(exact)
     sample_y = offset[:, 0::2] + (rows + tap_y)
     sample_x = offset[:, 1::2] + (cols + tap_x)
 
     grid = sampling_grid(sample_y, sample_x, h, w).reshape(b * groups, taps * h_out, w_out, 2)
     sampled = F.grid_sample(
-        x.reshape(b * groups, c_in // groups, h, w),
+        x.to(exact).reshape(b * groups, c_in // groups, h, w),
         grid,
         mode="bilinear",
         padding_mode="zeros",

@@ -26,7 +26,13 @@ def warp(x: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
         ``(b, c, h, w)``.
     """
     h, w = x.shape[-2:]
-    rows = torch.arange(h, dtype=x.dtype, device=x.device).view(1, -1, 1)
-    cols = torch.arange(w, dtype=x.dtype, device=x.device).view(1, 1, -1)
+    # positions in float32 at least (bf16 autocast would round 37.3 px to 37.25), sampled from
+    # an input as wide
+    exact = torch.promote_types(x.dtype, torch.float32)
+    rows = torch.arange(h, dtype=exact, device=x.device).view(1, -1, 1)
+    cols = torch.arange(w, dtype=exact, device=x.device).view(1, 1, -1)
+    flow = flow.to(exact)
     grid = sampling_grid(rows + flow[:, 0], cols + flow[:, 1], h, w)  # (b, h, w, 2)
-    return F.grid_sample(x, grid, mode="bilinear", padding_mode="border", align_corners=False)
+    return F.grid_sample(
+        x.to(exact), grid, mode="bilinear", padding_mode="border", align_corners=False
+    )
