@@ -13,7 +13,15 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1] / "spk2img"
 
 LAYERS: list[set[str]] = [
-    {"errors", "provenance", "parts", "io", "protocol", "markdown"},  # formats, transfer
+    {
+        "errors",
+        "provenance",
+        "hardware",
+        "parts",
+        "io",
+        "protocol",
+        "markdown",
+    },  # formats, transfer
     {"model"},  # the network and its geometry
     {"sim"},  # what a spike camera films
     {"runtime"},  # spikes -> windows -> network -> frames
