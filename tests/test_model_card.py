@@ -1,21 +1,30 @@
 """The model card (spk2img.training.model_card) of a named model: its header, how to run it,
 the sensors it was trained on and the run's figures come from the checkpoint and the log."""
 
+import json
 import shutil
 
 from spk2img.training.model_card import render
 from spk2img.training.train import TrainConfig, train
 
+SCORES = {"psnr": 30.0, "ssim": 0.9, "psnr_fast": 25.0}
+RESULTS = {"procedural": {"network": SCORES, "tfp_best": SCORES, "tfi": SCORES}}
 
-def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
+
+def _two_step_run(tmp_path, standin_model):
+    """A 2-step `tiny` run's folder and a stand-in graph named as the shipped `real`."""
     run = tmp_path / "run"
     config = dict(member="tiny", patch=16, batch_size=2, val_every=2, val_per_class=1)
     fast = dict(log_every=1, progress=False, warmup_steps=1, workers=0)
     train(TrainConfig(steps=2, run_dir=str(run), **config, **fast))
     onnx = tmp_path / "spk2img-real.onnx"
     shutil.copy(standin_model, onnx)
-    scores = {"psnr": 30.0, "ssim": 0.9, "psnr_fast": 25.0}
-    results = {"procedural": {"network": scores, "tfp_best": scores, "tfi": scores}}
+    return run, onnx
+
+
+def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
+    run, onnx = _two_step_run(tmp_path, standin_model)
+    results = RESULTS
     card = render(run / "last.pt", onnx, run, results, history="two steps")
     assert card.startswith("# Model card: spk2img `real` model")
     assert "`spk2img reconstruct --model real`" in card and "spk2img-real.encoder.onnx" in card
@@ -27,3 +36,22 @@ def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
     (run / "last.pt").unlink()
     card = render(run / "best.pt", onnx, run, results, history="")
     assert "resumable state is not kept" in card
+
+
+def test_card_names_every_hardware_that_trained_the_checkpoint(tmp_path, standin_model):
+    """A run resumed on other machines: the card lists those that trained up to the
+    checkpoint's step (the log's run records before it), not the last one alone."""
+    run, onnx = _two_step_run(tmp_path, standin_model)
+    log = run / "metrics.jsonl"
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    (start,) = [r for r in records if r["kind"] == "run"]
+    start["hardware"] = "machine A"
+    records += [
+        {"kind": "run", "step": 1, "hardware": "machine B"},
+        {"kind": "run", "step": 1, "hardware": "machine A"},
+        {"kind": "run", "step": 2, "hardware": "machine C"},  # after the checkpoint's step 2
+    ]
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    card = render(run / "last.pt", onnx, run, RESULTS, history="")
+    assert "optimiser steps on machine A; then machine B." in card
+    assert "machine C" not in card

@@ -29,6 +29,12 @@ THEN = "; then "
 """What joins the hardware of a run resumed on other hardware (:class:`RunSettings`)."""
 
 
+def run_hardware(starts: list[dict]) -> str:
+    """The hardware of a run's ``run`` records (``metrics.jsonl``, in order): each distinct
+    one once, in the order they trained, joined by :data:`THEN`."""
+    return THEN.join(dict.fromkeys(r["hardware"] for r in starts))
+
+
 @dataclass(frozen=True)
 class RunSettings:
     """What trained a run: the family ``member``, windows per step, patch side (px), hardware
@@ -100,8 +106,7 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
     logged = starts[0] if starts else None
     if logged is not None:
         tc = logged["train_config"]
-        hardware = THEN.join(dict.fromkeys(r["hardware"] for r in starts))
-        settings = RunSettings(tc["member"], tc["batch_size"], tc["patch"], hardware)
+        settings = RunSettings(tc["member"], tc["batch_size"], tc["patch"], run_hardware(starts))
     elif "settings" in entry:
         settings = RunSettings(**entry["settings"])
     else:

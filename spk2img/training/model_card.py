@@ -39,6 +39,7 @@ from spk2img.runtime.binning import suggest_binning
 from spk2img.runtime.loader import load_network
 from spk2img.runtime.onnx_backend import OnnxModel, graph_metadata
 
+from .campaign import run_hardware
 from .train import selection_words
 
 CLASSES = [f"psnr_{c}" for c in (*SENSORS, *MOTIONS, *BRIGHTNESS)]
@@ -172,6 +173,11 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     vals = [r for r in records if r["kind"] == "val"]
     data = next((r for r in records if r["kind"] == "data"), None)
     tc = state["train_config"]
+    # the processes that trained the checkpoint: those that started before its step
+    starts = [r for r in records if r["kind"] == "run" and r["step"] < state["step"]]
+    hardware = (
+        run_hardware(starts) if starts else state.get("hardware", f"{tc['threads']} CPU threads")
+    )
     member = state["member"]
     history_line = f"- history: {history}\n" if history else ""
     ideal_share = tc.get("ideal_share", 0.5)
@@ -283,7 +289,7 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
 - loss: hierarchical L1 (λ = 0.02){LOSS_NOTES[loss]}; Adam, peak lr {tc["lr"]}, warm-up
   {tc["warmup_steps"]} steps, cosine decay; batch {tc["batch_size"]}; seed {tc["seed"]}.
 - steps: **{state["step"]}** of {tc["steps"]} planned; **{state["wall_s"] / 3600:.2f} h** of
-  optimiser steps on {state.get("hardware", f"{tc['threads']} CPU threads")}.
+  optimiser steps on {hardware}.
 - command: `spk2img train --member {member} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]} {data_flags}
   --ideal-share {ideal_share} --display-share {display_share}
