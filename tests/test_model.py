@@ -13,9 +13,11 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from spk2img.errors import InputError
 from spk2img.model.block_split import key_terms, neighbour_terms
 from spk2img.model.checkpoint import (
     CheckpointError,
+    average_checkpoints,
     config_from_dict,
     config_to_dict,
     read_network,
@@ -562,3 +564,47 @@ def test_checkpoint_reader_round_trips_and_refuses_what_is_not_a_checkpoint(tmp_
         with pytest.raises(CheckpointError, match=reason) as caught:
             read_network(tmp_path / name)
         assert name in str(caught.value)
+
+
+def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
+    """A soup of two checkpoints of one network is their weighted mean, parameter by parameter
+    (so its output interpolates: the mean of a network with itself is that network); integer
+    buffers and the metadata are the last source's, and ``averaged_from`` names the sources.
+    Different networks, one source or weights that do not sum to 1 are refused."""
+    config = get_config("tiny")
+    paths = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        path = tmp_path / f"seed{seed}.pt"
+        model = build_model(config).state_dict()
+        save_checkpoint(path, model=model, config=config_to_dict(config), step=10 * (seed + 1))
+        paths.append(path)
+    average_checkpoints(paths, [0.25, 0.75], tmp_path / "soup.pt")
+    soup, state = read_network(tmp_path / "soup.pt")
+    a, b = (read_network(p)[0].state_dict() for p in paths)
+    for name, tensor in soup.state_dict().items():
+        if tensor.is_floating_point():
+            torch.testing.assert_close(tensor, 0.25 * a[name] + 0.75 * b[name])
+        else:
+            assert torch.equal(tensor, b[name])
+    assert state["step"] == 20
+    assert state["averaged_from"] == [
+        {"path": "seed0.pt", "step": 10, "weight": 0.25},
+        {"path": "seed1.pt", "step": 20, "weight": 0.75},
+    ]
+    average_checkpoints([paths[0], paths[0]], [0.5, 0.5], tmp_path / "self.pt")
+    spikes = (torch.rand(1, 41, 24, 32) < 0.3).float()
+    with torch.no_grad():
+        torch.testing.assert_close(
+            read_network(tmp_path / "self.pt")[0](spikes), read_network(paths[0])[0](spikes)
+        )
+
+    other = tmp_path / "lite.pt"
+    lite = get_config("lite")
+    save_checkpoint(other, model=build_model(lite).state_dict(), config=config_to_dict(lite))
+    with pytest.raises(CheckpointError, match="a different network"):
+        average_checkpoints([paths[0], other], [0.5, 0.5], tmp_path / "x.pt")
+    with pytest.raises(InputError, match="two or more"):
+        average_checkpoints(paths[:1], [1.0], tmp_path / "x.pt")
+    with pytest.raises(InputError, match="sum to 1"):
+        average_checkpoints(paths, [0.5, 0.6], tmp_path / "x.pt")

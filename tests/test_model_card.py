@@ -4,6 +4,7 @@ the sensors it was trained on and the run's figures come from the checkpoint and
 import json
 import shutil
 
+from spk2img.model.checkpoint import average_checkpoints
 from spk2img.training.model_card import render
 from spk2img.training.train import TrainConfig, train
 
@@ -36,6 +37,15 @@ def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
     (run / "last.pt").unlink()
     card = render(run / "best.pt", onnx, run, results, history="")
     assert "resumable state is not kept" in card
+    assert "- weights:" not in card
+
+
+def test_card_of_averaged_weights_names_what_they_average(tmp_path, standin_model):
+    """Weights averaged from checkpoints (scripts/average_checkpoints.py) say so on the card."""
+    run, onnx = _two_step_run(tmp_path, standin_model)
+    average_checkpoints([run / "best.pt", run / "last.pt"], [0.25, 0.75], run / "soup.pt")
+    card = render(run / "soup.pt", onnx, run, RESULTS, history="")
+    assert "- weights: the weighted mean of 0.25 x `best.pt` (step 2), 0.75 x `last.pt`" in card
 
 
 def test_card_names_every_hardware_that_trained_the_checkpoint(tmp_path, standin_model):

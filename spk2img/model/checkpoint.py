@@ -121,6 +121,7 @@ RELEASE_KEYS = (
     "commit",
     "hardware",
     "init_from",
+    "averaged_from",
 )
 
 
@@ -128,3 +129,39 @@ def release_checkpoint(src: str | Path, dst: str | Path) -> None:
     """Copy a training checkpoint without its optimiser state (what the repo ships)."""
     state = load_checkpoint(src)
     save_checkpoint(dst, **{k: state[k] for k in RELEASE_KEYS if k in state})
+
+
+def average_checkpoints(sources: list[str | Path], weights: list[float], dst: str | Path) -> None:
+    """Write to ``dst`` a release checkpoint whose network weights are the weighted mean of the
+    ``sources``' (same config; ``weights`` positive, summing to 1): a "model soup" of one
+    lineage's checkpoints. Everything else is the last source's, plus ``averaged_from`` (each
+    source's file name, step and weight). :class:`CheckpointError` when a source is not a
+    checkpoint or the configs differ; :class:`InputError` for bad weights."""
+    if len(sources) < 2 or len(weights) != len(sources):
+        raise InputError(
+            f"need two or more checkpoints and one weight each, got {len(sources)} "
+            f"checkpoints and {len(weights)} weights"
+        )
+    if min(weights) <= 0 or abs(sum(weights) - 1) > 1e-6:
+        raise InputError(f"weights must be positive and sum to 1, got {weights}")
+    states = [load_checkpoint(path) for path in sources]
+    configs = [stored_config(state, path) for state, path in zip(states, sources, strict=True)]
+    for config, path in zip(configs[1:], sources[1:], strict=True):
+        if config != configs[0]:
+            raise CheckpointError(f"{path}: a different network from {sources[0]}'s")
+    model = Spk2ImgNet(configs[0])
+    for state, path in zip(states, sources, strict=True):
+        load_weights(model, state, path)  # every source must fit the network
+    last = states[-1]
+    release = {k: last[k] for k in RELEASE_KEYS if k in last}
+    release["model"] = {}
+    for name, tensor in last["model"].items():
+        if tensor.is_floating_point():
+            terms = [w * s["model"][name].double() for w, s in zip(weights, states, strict=True)]
+            tensor = sum(terms).to(tensor.dtype)
+        release["model"][name] = tensor
+    release["averaged_from"] = [
+        {"path": Path(path).name, "step": state.get("step"), "weight": w}
+        for path, state, w in zip(sources, states, weights, strict=True)
+    ]
+    save_checkpoint(dst, **release)

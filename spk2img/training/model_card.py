@@ -189,6 +189,14 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
         if init
         else ""
     )
+    soup = state.get("averaged_from")
+    soup_line = (
+        "- weights: the weighted mean of "
+        + ", ".join(f"{a['weight']:g} x `{a['path']}` (step {a['step']})" for a in soup)
+        + " (scripts/average_checkpoints.py)\n"
+        if soup
+        else ""
+    )
     init_flag = f" --init {Path(init['path']).name}" if init else ""
     loss = tc.get("loss", "l1")  # runs from before --loss trained with L1
     loss_flag = f" --loss {loss}" if loss != "l1" else ""
@@ -294,7 +302,7 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]} {data_flags}
   --ideal-share {ideal_share} --display-share {display_share}
   --threads {tc["threads"]}{init_flag}{loss_flag}`
-{init_line}{history_line}{resume}
+{init_line}{soup_line}{history_line}{resume}
 {body}
 ## Validation during training
 | step | hours | procedural PSNR dB | natural PSNR dB |
