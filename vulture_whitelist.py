@@ -49,6 +49,9 @@ _.keep_alive  # uvicorn's RequestResponseCycle: close the connection after the r
 _.niqe  # spk2img.evaluation.niqe
 _.display_grey  # spk2img.evaluation.niqe
 
+# used by scripts/average_checkpoints.py (scripts are not scanned) and the tests
+_.average_checkpoints  # spk2img/model/checkpoint.py
+
 # FastAPI routes of the viewer (spk2img/service/routers/viewer.py), registered by their decorators
 _.page
 _.static_file
