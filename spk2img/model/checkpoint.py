@@ -144,14 +144,10 @@ def average_checkpoints(sources: list[str | Path], weights: list[float], dst: st
         )
     if min(weights) <= 0 or abs(sum(weights) - 1) > 1e-6:
         raise InputError(f"weights must be positive and sum to 1, got {weights}")
-    states = [load_checkpoint(path) for path in sources]
-    configs = [stored_config(state, path) for state, path in zip(states, sources, strict=True)]
-    for config, path in zip(configs[1:], sources[1:], strict=True):
-        if config != configs[0]:
+    networks, states = zip(*(read_network(path) for path in sources), strict=True)
+    for network, path in zip(networks[1:], sources[1:], strict=True):
+        if network.config != networks[0].config:
             raise CheckpointError(f"{path}: a different network from {sources[0]}'s")
-    model = Spk2ImgNet(configs[0])
-    for state, path in zip(states, sources, strict=True):
-        load_weights(model, state, path)  # every source must fit the network
     last = states[-1]
     release = {k: last[k] for k in RELEASE_KEYS if k in last}
     release["model"] = {}
