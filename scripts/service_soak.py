@@ -18,9 +18,7 @@ import random
 import select
 import socket
 import struct
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections import Counter
@@ -30,16 +28,11 @@ import httpx
 import numpy as np
 
 import spk2img
+from spk2img.bench.serve_process import serve_process
 from spk2img.io.spikes import pack_frames
 from spk2img.protocol.framing import DoneRecord, FrameRecord, RecordParser
 
 OCTET = {"Content-Type": "application/octet-stream"}
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def resident_mib(pid: int) -> float:
@@ -162,55 +155,27 @@ def main() -> int:
     parser.add_argument("--requests", type=int, default=50)
     parser.add_argument("--size", type=int, default=32)
     args = parser.parse_args()
-    port = free_port()
-    command = [
-        sys.executable,
-        "-m",
-        "spk2img",
-        "serve",
-        "--model",
-        args.model,
-        "--port",
-        str(port),
-        "--threads",
-        "2",
-        "--upload-read-timeout-seconds",
-        "1",
-        "--log-level",
-        "warning",
-    ]
-    with tempfile.TemporaryFile() as log:
-        server = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
-        url = f"http://127.0.0.1:{port}"
-        try:
-            for _ in range(600):
-                try:
-                    if httpx.get(url + "/readyz").status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.1)
-            before = resident_mib(server.pid)
-            soak = Soak(url, args.model, args.size)
-            start = time.monotonic()
-            threads = [
-                threading.Thread(target=soak.client, args=(k, args.requests))
-                for k in range(args.clients)
-            ]
-            for thread in threads:
-                thread.start()
-            for thread in threads:
-                thread.join()
-            time.sleep(1.0)
-            admitted = [
-                line
-                for line in httpx.get(url + "/metrics").text.splitlines()
-                if line.startswith("spk2img_admitted_requests ")
-            ]
-            after = resident_mib(server.pid)
-        finally:
-            server.terminate()
-            server.wait(10)
+    flags = ("--threads", "2", "--upload-read-timeout-seconds", "1")
+    with serve_process(args.model, *flags) as server:
+        url = server.url
+        before = resident_mib(server.process.pid)
+        soak = Soak(url, args.model, args.size)
+        start = time.monotonic()
+        threads = [
+            threading.Thread(target=soak.client, args=(k, args.requests))
+            for k in range(args.clients)
+        ]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        time.sleep(1.0)
+        admitted = [
+            line
+            for line in httpx.get(url + "/metrics").text.splitlines()
+            if line.startswith("spk2img_admitted_requests ")
+        ]
+        after = resident_mib(server.process.pid)
     free = admitted == ["spk2img_admitted_requests 0.0"]
     for kind in ("good", "junk", "trickle", "reset", "error"):
         ok, bad = soak.outcomes[(kind, True)], soak.outcomes[(kind, False)]

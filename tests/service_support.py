@@ -4,12 +4,9 @@ client that can read the response while it is still sending the body (full duple
 from __future__ import annotations
 
 import socket
-import subprocess
-import sys
-import tempfile
 import threading
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +15,7 @@ import h11
 import httpx
 import numpy as np
 
+from spk2img.bench.serve_process import free_port, serve_process
 from spk2img.io.spikes import pack_frames
 from spk2img.protocol.framing import DoneRecord, ErrorRecord, FrameRecord, RecordParser
 
@@ -25,68 +23,8 @@ START_SECONDS = 60
 OCTET = {"content-type": "application/octet-stream"}
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-@dataclass
-class Server:
-    """A running ``spk2img serve``: its base URL, port and process."""
-
-    url: str
-    port: int
-    process: subprocess.Popen
-
-    def get(self, path: str) -> httpx.Response:
-        return httpx.get(self.url + path, timeout=10)
-
-
-@contextmanager
-def run_server(
-    model: Path,
-    *flags: str,
-    program: Sequence[str] = (sys.executable, "-m", "spk2img"),
-    env: dict[str, str] | None = None,
-    cwd: Path | None = None,
-) -> Iterator[Server]:
-    """Run ``PROGRAM serve --model MODEL FLAGS…`` on a free port (in environment ``env`` and
-    folder ``cwd``, default this process's); wait until ``/readyz`` is 200.
-
-    The default program is ``spk2img serve`` (``python -m spk2img``)."""
-    port = free_port()
-    cmd = [*program, "serve", "--model", str(model), "--port", str(port)]
-    cmd += ["--log-level", "warning", *flags]
-    with tempfile.TemporaryFile() as log:  # a file, not a pipe: a full pipe would block it
-        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=cwd)
-        server = Server(f"http://127.0.0.1:{port}", port, process)
-        try:
-            _wait_ready(server, log)
-            yield server
-        finally:
-            process.terminate()
-            try:
-                process.wait(10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(10)
-
-
-def _wait_ready(server: Server, log) -> None:
-    deadline = time.monotonic() + START_SECONDS
-    while time.monotonic() < deadline:
-        if server.process.poll() is not None:
-            log.seek(0)
-            out = log.read().decode(errors="replace")
-            raise RuntimeError(f"spk2img serve exited with {server.process.returncode}:\n{out}")
-        try:
-            if server.get("/readyz").status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
-    raise RuntimeError(f"spk2img serve not ready after {START_SECONDS} s")
+run_server = serve_process
+"""A real ``spk2img serve`` in a subprocess (:func:`spk2img.bench.serve_process.serve_process`)."""
 
 
 def random_stream(frames: int, height: int, width: int, seed: int = 0) -> np.ndarray:

@@ -10,15 +10,10 @@ in a pool of ``T`` threads fed by as many concurrent callers — the service min
 from __future__ import annotations
 
 import os
-import socket
-import subprocess
-import sys
-import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 
@@ -26,56 +21,10 @@ import numpy as np
 
 from spk2img.sim.simulator import CENTER_FRAME
 
+from .serve_process import serve_process
 from .worker import thread_env
 
-START_TIMEOUT_S = 120
 PERCENTILES = (50, 90, 99)
-
-
-def free_port() -> int:
-    """A TCP port of 127.0.0.1 that nothing listens on right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-@contextmanager
-def running_service(
-    model: Path, threads: int, env: dict[str, str], device: str = "cpu"
-) -> Iterator[str]:
-    """Run ``spk2img serve`` on ``model`` with ``threads`` threads on ``device``; yield its base
-    URL once ``/readyz`` answers 200; stop it afterwards."""
-    import httpx
-
-    port = free_port()
-    cmd = [sys.executable, "-m", "spk2img", "serve", "--model", str(model)]
-    cmd += ["--host", "127.0.0.1", "--port", str(port), "--threads", str(threads)]
-    cmd += ["--log-level", "warning", "--device", device]
-    url = f"http://127.0.0.1:{port}"
-    with tempfile.TemporaryFile() as log:  # a file, not a pipe: a full pipe would block it
-        process = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
-        try:
-            deadline = time.monotonic() + START_TIMEOUT_S
-            while True:
-                if process.poll() is not None:
-                    log.seek(0)
-                    raise RuntimeError(f"spk2img serve exited: {log.read().decode()[-2000:]}")
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"spk2img serve not ready after {START_TIMEOUT_S} s")
-                try:
-                    if httpx.get(url + "/readyz", timeout=5).status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.2)
-            yield url
-        finally:
-            process.terminate()
-            try:
-                process.wait(10)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait(10)
 
 
 def drive(make_call: Callable[[], Callable[[], None]], clients: int, requests: int) -> dict:
@@ -141,7 +90,9 @@ def service_benchmark(
 
     results = []
     env = {**os.environ, **thread_env(threads)}
-    with running_service(model, threads, env, device) as url:
+    flags = ("--threads", str(threads), "--device", device)
+    with serve_process(model, *flags, env=env) as server:
+        url = server.url
         provider = served_provider(url)
         if provider != local_model.provider:
             raise RuntimeError(
