@@ -87,3 +87,13 @@ def test_a_request_over_the_time_limit_is_408(busy_server):
         assert head.status_code == 408 and b"over 2 s" in client.read_all()
     finally:
         client.close()
+
+
+def test_a_server_that_cannot_start_is_an_error_with_its_output(tmp_path):
+    """The launcher the benchmark and these tests share sees a server exit (rather than waiting
+    out its readiness timeout, whose error says "not ready") and quotes the server's message."""
+    missing = tmp_path / "missing.onnx"
+    with pytest.raises(RuntimeError, match="spk2img serve exited with 2") as failure:
+        with run_server(missing):
+            pass
+    assert "missing.onnx" in str(failure.value)
