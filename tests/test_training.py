@@ -1,5 +1,6 @@
 import dataclasses
 import json
+import math
 import os
 import signal
 import subprocess
@@ -22,7 +23,13 @@ from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.loss import hierarchical_loss
 from spk2img.training.stop import StopRequest
 from spk2img.training.synthesis import batch_generator, film_plans
-from spk2img.training.train import TrainConfig, learning_rate, load_initial_weights, train
+from spk2img.training.train import (
+    TrainConfig,
+    learning_rate,
+    load_initial_weights,
+    logged_best,
+    train,
+)
 
 TINY_RUN = dict(
     member="tiny",
@@ -156,6 +163,42 @@ def test_resume_continues_the_same_loss_curve(tmp_path, synthesis):
     state_b = load_checkpoint(resumed / "last.pt")["model"]
     for name in state_a:
         torch.testing.assert_close(state_a[name], state_b[name], rtol=1e-5, atol=1e-6)
+
+
+def test_a_resumed_run_without_its_best_pt_keeps_the_logged_best(tmp_path):
+    """The repository keeps a run's last.pt alone: resumed without best.pt, a run writes it only
+    for a validation that beats every one its log records before (here a doctored 99 dB)."""
+    run = tmp_path / "run"
+    train(TrainConfig(run_dir=str(run), steps=4, **TINY_RUN | {"val_every": 2}))
+    assert load_checkpoint(run / "best.pt")["step"] in (2, 4)
+    (run / "best.pt").unlink()
+    lines = (run / "metrics.jsonl").read_text().splitlines()
+    records = [json.loads(line) for line in lines]
+    for record in records:
+        if record["kind"] == "val" and record["step"] == 2:
+            record["psnr"] = 99.0
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    summary = train(TrainConfig(run_dir=str(run), steps=8, **TINY_RUN | {"val_every": 2}))
+    assert [r["step"] for r in _records(run, "val")] == [2, 4, 6, 8]
+    assert not (run / "best.pt").exists() and summary["best_psnr"] == 99.0
+    assert summary["best_checkpoint"] is None
+
+
+def test_logged_best_reads_the_selection_score_up_to_the_resumed_step(tmp_path):
+    log = tmp_path / "metrics.jsonl"
+    rows = [
+        {"kind": "train", "step": 1, "loss": 0.5},
+        {"kind": "val", "step": 2, "psnr": 30.0, "real_video": {"psnr": 33.1}},
+        {"kind": "val", "step": 4, "psnr": 29.0, "real_video": {"psnr": 33.3}},
+        {"kind": "val", "step": 6, "psnr": 31.0},  # validated without the real-video set
+        {"kind": "val", "step": 8, "psnr": 35.0, "real_video": {"psnr": 34.0}},  # after
+    ]
+    log.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert logged_best(log, "real video", 6) == 33.3
+    assert logged_best(log, "procedural", 6) == 31.0
+    assert logged_best(log, "procedural", 8) == 35.0
+    assert logged_best(log, "procedural", 1) == -math.inf
+    assert logged_best(tmp_path / "none.jsonl", "procedural", 6) == -math.inf
 
 
 def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):

@@ -80,9 +80,10 @@ def run(args: argparse.Namespace) -> int:
         return 128 + signal.Signals[name].value if name in signal.Signals.__members__ else 130
     if summary["last_validation"]:
         last = summary["last_validation"]
+        best = summary["best_checkpoint"] or "not kept (its log's best was not beaten since)"
         print(
             f"trained {cfg.member} to step {summary['steps']} in {summary['wall_s'] / 3600:.2f} h "
-            f"of optimiser steps; best checkpoint {summary['best_checkpoint']} "
+            f"of optimiser steps; best checkpoint {best} "
             f"({summary['val_set']} validation, {summary['best_psnr']:.2f} dB); last validation: "
             f"procedural {last['psnr']:.2f} dB"
             + (f", natural {last['natural']['psnr']:.2f} dB" if "natural" in last else "")

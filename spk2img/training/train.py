@@ -76,6 +76,23 @@ def selection_score(val: dict, selection: str) -> float:
     return val["natural"][f"psnr_{regime}" if regime else "psnr"]
 
 
+def logged_best(path: Path, selection: str, until: int) -> float:
+    """The best score on ``selection`` (dB) among the validations that the metrics log ``path``
+    records up to step ``until``; ``-inf`` for none. A resumed run writes ``best.pt`` only for a
+    checkpoint that beats every validation before it, whether or not that one's ``best.pt`` was
+    kept."""
+    scores = [-math.inf]
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            record = json.loads(line)
+            if record.get("kind") == "val" and record["step"] <= until:
+                try:
+                    scores.append(selection_score(record, selection))
+                except KeyError:  # validated on other sets then
+                    pass
+    return max(scores)
+
+
 def selection_words(selection: str) -> str:
     """The score :func:`selection_set` names, in words (for the model card)."""
     if selection == "procedural":
@@ -206,6 +223,8 @@ def train(cfg: TrainConfig) -> dict:
         previous = load_checkpoint(run_dir / "best.pt")
         if previous.get("val_set", "procedural") == selection:
             best = float(previous.get("val_psnr", -math.inf))
+    if run.main and start:  # best.pt may be gone (the repository keeps last.pt alone)
+        best = max(best, logged_best(run_dir / "metrics.jsonl", selection, start))
 
     def checkpoint(path: Path, step: int, **extra) -> None:
         save_checkpoint(
@@ -303,7 +322,7 @@ def train(cfg: TrainConfig) -> dict:
         "run_dir": str(run_dir),
         "steps": cfg.steps,
         "wall_s": wall,
-        "best_checkpoint": str(run_dir / "best.pt"),
+        "best_checkpoint": str(run_dir / "best.pt") if (run_dir / "best.pt").is_file() else None,
         "val_set": selection,
         "best_psnr": best,
         "last_validation": val,
