@@ -4,6 +4,9 @@ counts, shapes at odd sizes, finite outputs on extreme inputs, gradients everywh
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 from unittest import mock
 
 import numpy as np
@@ -20,6 +23,7 @@ from spk2img.model.checkpoint import (
     average_checkpoints,
     config_from_dict,
     config_to_dict,
+    load_checkpoint,
     read_network,
     save_checkpoint,
 )
@@ -566,6 +570,37 @@ def test_checkpoint_reader_round_trips_and_refuses_what_is_not_a_checkpoint(tmp_
         assert name in str(caught.value)
 
 
+def test_average_checkpoints_script_reads_fractions_and_refuses_bad_input_in_one_line(tmp_path):
+    """scripts/average_checkpoints.py: ``--weights 2/3,1/3`` is a weighted mean; a missing file
+    or weights that are not numbers exit 2 with one line, as the spk2img CLI does."""
+    config = get_config("tiny")
+    paths = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        paths.append(tmp_path / f"seed{seed}.pt")
+        save_checkpoint(
+            paths[-1], model=build_model(config).state_dict(), config=config_to_dict(config)
+        )
+    script = [sys.executable, str(Path(__file__).parents[1] / "scripts" / "average_checkpoints.py")]
+    out = tmp_path / "soup.pt"
+    done = subprocess.run(
+        [*script, *map(str, paths), "--weights", "2/3,1/3", "--out", str(out)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr
+    weights = [part["weight"] for part in load_checkpoint(out)["averaged_from"]]
+    np.testing.assert_allclose(weights, [2 / 3, 1 / 3])
+    for args, message in [
+        ([str(tmp_path / "missing.pt"), str(paths[0])], "no such checkpoint"),
+        ([*map(str, paths), "--weights", "2/3,one"], "is not a list of numbers"),
+        ([*map(str, paths), "--weights", "0.5,0.6"], "sum to 1"),
+    ]:
+        done = subprocess.run([*script, *args, "--out", str(out)], capture_output=True, text=True)
+        assert done.returncode == 2 and message in done.stderr
+        assert done.stderr.startswith("average_checkpoints: ") and done.stderr.count("\n") == 1
+
+
 def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
     """A soup of two checkpoints of one network is their weighted mean, parameter by parameter
     (so its output interpolates: the mean of a network with itself is that network); integer
@@ -592,6 +627,22 @@ def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
         {"path": "seed0.pt", "step": 10, "weight": 0.25},
         {"path": "seed1.pt", "step": 20, "weight": 0.75},
     ]
+    torch.manual_seed(2)
+    third = tmp_path / "seed2.pt"
+    save_checkpoint(third, model=build_model(config).state_dict(), config=config_to_dict(config))
+    average_checkpoints([tmp_path / "soup.pt", third], [0.8, 0.2], tmp_path / "nested.pt")
+    average_checkpoints([*paths, third], [0.2, 0.6, 0.2], tmp_path / "flat.pt")
+    nested, flat = (load_checkpoint(tmp_path / f"{n}.pt") for n in ("nested", "flat"))
+    for name, tensor in flat["model"].items():
+        torch.testing.assert_close(nested["model"][name], tensor)
+    assert [part["path"] for part in nested["averaged_from"]] == [
+        "seed0.pt",
+        "seed1.pt",
+        "seed2.pt",
+    ]
+    weights = [part["weight"] for part in nested["averaged_from"]]
+    np.testing.assert_allclose(weights, [0.2, 0.6, 0.2])  # a mean in a mean lists its sources
+
     average_checkpoints([paths[0], paths[0]], [0.5, 0.5], tmp_path / "self.pt")
     spikes = (torch.rand(1, 41, 24, 32) < 0.3).float()
     with torch.no_grad():

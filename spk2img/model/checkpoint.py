@@ -135,7 +135,8 @@ def average_checkpoints(sources: list[str | Path], weights: list[float], dst: st
     """Write to ``dst`` a release checkpoint whose network weights are the weighted mean of the
     ``sources``' (same config; ``weights`` positive, summing to 1): a "model soup" of one
     lineage's checkpoints. Everything else is the last source's, plus ``averaged_from`` (each
-    source's file name, step and weight). :class:`CheckpointError` when a source is not a
+    source's file name, step and weight; a source that is itself a mean is listed as what it
+    averages, its weights scaled by its own). :class:`CheckpointError` when a source is not a
     checkpoint or the configs differ; :class:`InputError` for bad weights."""
     if len(sources) < 2 or len(weights) != len(sources):
         raise InputError(
@@ -157,7 +158,16 @@ def average_checkpoints(sources: list[str | Path], weights: list[float], dst: st
             tensor = sum(terms).to(tensor.dtype)
         release["model"][name] = tensor
     release["averaged_from"] = [
-        {"path": Path(path).name, "step": state.get("step"), "weight": w}
+        part
         for path, state, w in zip(sources, states, weights, strict=True)
+        for part in _constituents(path, state, w)
     ]
     save_checkpoint(dst, **release)
+
+
+def _constituents(path: str | Path, state: dict, weight: float) -> list[dict]:
+    """What a checkpoint of weight ``weight`` in a mean contributes to its ``averaged_from``
+    record: itself, or, for a mean, its own sources with their weights times ``weight``."""
+    if "averaged_from" not in state:
+        return [{"path": Path(path).name, "step": state.get("step"), "weight": weight}]
+    return [{**part, "weight": part["weight"] * weight} for part in state["averaged_from"]]
