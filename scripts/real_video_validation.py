@@ -10,6 +10,8 @@ in ``--md`` are kept. ``--add`` keeps the methods already in ``--json``
 (scored on the same windows: the same clips and seeds) and scores only the models given. A
 model is a shipped model's name or ``NAME=GRAPH.onnx``, an exported graph scored under NAME (a
 candidate before it ships: ``--add`` to a copy of the JSON compares it with the shipped ones).
+Scoring a network takes minutes: on a terminal a bar per method counts its windows
+(``--no-progress`` hides it).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spk2img.cli.progress import add_progress_flags, progress_bar
 from spk2img.evaluation.real_video import SPEEDS, real_video_scores, real_video_set
 from spk2img.evaluation.scoring import network_scorer, tfi_window, tfp_best_window, tfp_window
 from spk2img.runtime.loader import load_network
@@ -94,6 +97,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--json", type=Path, default=Path("docs/real_video.json"))
     p.add_argument("--md", type=Path, default=Path("docs/real_video.md"))
     p.add_argument("--add", action="store_true", help="add the models to --json's methods")
+    add_progress_flags(p)
     args = p.parse_args(argv)
     start = time.perf_counter()
     windows = real_video_set(args.data, seeds=args.seeds)
@@ -110,7 +114,12 @@ def main(argv: list[str] | None = None) -> None:
     results = dict(earlier["methods"]) if earlier else {}
     for name, method in methods.items():
         start = time.perf_counter()
-        images = [method(w.spikes, w.truth) for w in windows]
+        with progress_bar(args, len(windows), unit="window") as bar:
+            bar.set_description(name)
+            images = []
+            for w in windows:
+                images.append(method(w.spikes, w.truth))
+                bar.update()
         results[name] = real_video_scores(windows, images)
         results[name]["seconds"] = time.perf_counter() - start
         print(f"{name}: {results[name]['psnr']:.2f} dB", flush=True)
