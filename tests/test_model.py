@@ -612,7 +612,9 @@ def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
         torch.manual_seed(seed)
         path = tmp_path / f"seed{seed}.pt"
         model = build_model(config).state_dict()
-        save_checkpoint(path, model=model, config=config_to_dict(config), step=10 * (seed + 1))
+        save_checkpoint(
+            path, model=model, config=config_to_dict(config), step=10 * (seed + 1), val_psnr=30.0
+        )
         paths.append(path)
     average_checkpoints(paths, [0.25, 0.75], tmp_path / "soup.pt")
     soup, state = read_network(tmp_path / "soup.pt")
@@ -622,7 +624,7 @@ def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
             torch.testing.assert_close(tensor, 0.25 * a[name] + 0.75 * b[name])
         else:
             assert torch.equal(tensor, b[name])
-    assert state["step"] == 20
+    assert state["step"] == 20 and "val_psnr" not in state  # a score the mean was not given
     assert state["averaged_from"] == [
         {"path": "seed0.pt", "step": 10, "weight": 0.25},
         {"path": "seed1.pt", "step": 20, "weight": 0.75},

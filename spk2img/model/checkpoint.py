@@ -134,7 +134,8 @@ def release_checkpoint(src: str | Path, dst: str | Path) -> None:
 def average_checkpoints(sources: list[str | Path], weights: list[float], dst: str | Path) -> None:
     """Write to ``dst`` a release checkpoint whose network weights are the weighted mean of the
     ``sources``' (same config; ``weights`` positive, summing to 1): a "model soup" of one
-    lineage's checkpoints. Everything else is the last source's, plus ``averaged_from`` (each
+    lineage's checkpoints. Everything else is the last source's but its validation score
+    (``val_psnr``: not the mean's), plus ``averaged_from`` (each
     source's file name, step and weight; a source that is itself a mean is listed as what it
     averages, its weights scaled by its own). :class:`CheckpointError` when a source is not a
     checkpoint or the configs differ; :class:`InputError` for bad weights."""
@@ -150,7 +151,8 @@ def average_checkpoints(sources: list[str | Path], weights: list[float], dst: st
         if network.config != networks[0].config:
             raise CheckpointError(f"{path}: a different network from {sources[0]}'s")
     last = states[-1]
-    release = {k: last[k] for k in RELEASE_KEYS if k in last}
+    # not val_psnr: the last source's validation score is not the mean's
+    release = {k: last[k] for k in RELEASE_KEYS if k in last and k != "val_psnr"}
     release["model"] = {}
     for name, tensor in last["model"].items():
         if tensor.is_floating_point():
