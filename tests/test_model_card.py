@@ -65,3 +65,14 @@ def test_card_names_every_hardware_that_trained_the_checkpoint(tmp_path, standin
     card = render(run / "last.pt", onnx, run, RESULTS, history="")
     assert "optimiser steps on machine A; then machine B." in card
     assert "machine C" not in card
+
+
+def test_card_of_a_run_with_a_weight_average_says_so(tmp_path, standin_model):
+    """A run with ``--ema-decay`` ships its average: the card's command and weights say so."""
+    run = tmp_path / "run"
+    config = dict(member="tiny", patch=16, batch_size=2, val_every=2, val_per_class=1)
+    fast = dict(log_every=1, progress=False, warmup_steps=1, workers=0)
+    train(TrainConfig(steps=2, run_dir=str(run), ema_decay=0.99, **config, **fast))
+    card = render(run / "best.pt", standin_model, run, RESULTS, history="")
+    assert " --ema-decay 0.99`" in card
+    assert "- weights: the moving average of the trained weights, 0.99 of it kept" in card

@@ -14,12 +14,14 @@ from PIL import Image
 
 from spk2img.cli import main
 from spk2img.errors import InputError
+from spk2img.evaluation.scoring import validation_set
 from spk2img.model.checkpoint import config_to_dict, load_checkpoint, load_model, save_checkpoint
 from spk2img.model.config import PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.sim.simulator import SensorConfig
 from spk2img.sim.sources import load_photo
 from spk2img.training.data import Batches, SampleMaker
+from spk2img.training.ema import WeightAverage
 from spk2img.training.loss import hierarchical_loss
 from spk2img.training.stop import StopRequest
 from spk2img.training.synthesis import batch_generator, film_plans
@@ -29,6 +31,7 @@ from spk2img.training.train import (
     load_initial_weights,
     logged_best,
     train,
+    validate,
 )
 
 TINY_RUN = dict(
@@ -199,6 +202,63 @@ def test_logged_best_reads_the_selection_score_up_to_the_resumed_step(tmp_path):
     assert logged_best(log, "procedural", 8) == 35.0
     assert logged_best(log, "procedural", 1) == -math.inf
     assert logged_best(tmp_path / "none.jsonl", "procedural", 6) == -math.inf
+
+
+def test_weight_average_follows_the_recurrence_and_copies_integer_buffers():
+    """After each update: average = decay * average + (1 - decay) * weights, per tensor."""
+    torch.manual_seed(0)
+    model = build_model("tiny")
+    average = WeightAverage(model, 0.9)
+    expected = {k: v.clone() for k, v in model.state_dict().items()}
+    for _ in range(3):
+        with torch.no_grad():
+            for parameter in model.parameters():
+                parameter.add_(torch.randn_like(parameter))
+        average.update(model)
+        for name, tensor in model.state_dict().items():
+            if tensor.is_floating_point():
+                expected[name] = 0.9 * expected[name] + 0.1 * tensor
+            else:
+                expected[name] = tensor.clone()
+    for name, tensor in average.model.state_dict().items():
+        torch.testing.assert_close(tensor, expected[name])
+    assert not any(p.requires_grad for p in average.model.parameters())
+    with pytest.raises(ValueError, match="decay"):
+        WeightAverage(model, 1.0)
+
+
+@pytest.mark.parametrize("decay", [1.5, -0.1])
+def test_ema_decay_outside_its_range_is_refused(decay):
+    with pytest.raises(ValueError, match="--ema-decay"):
+        TrainConfig(ema_decay=decay)
+
+
+def test_a_run_with_ema_validates_and_keeps_the_average_and_resumes_it(tmp_path):
+    """``--ema-decay``: last.pt holds the trained weights and their average (``ema``), the
+    validation scores the average and best.pt holds it; a run stopped and resumed ends with
+    the same average as a straight one."""
+    run = TINY_RUN | {"ema_decay": 0.5, "val_every": 4}
+    straight = tmp_path / "straight"
+    train(TrainConfig(run_dir=str(straight), steps=4, **run))
+    last, best = (load_checkpoint(straight / f"{n}.pt") for n in ("last", "best"))
+    assert best["step"] == 4 and last["model"].keys() == last["ema"].keys()
+    assert any(not torch.equal(last["model"][k], last["ema"][k]) for k in last["model"])
+    for name, tensor in last["ema"].items():
+        assert torch.equal(best["model"][name], tensor)
+    networks = {}
+    for weights in ("model", "ema"):
+        networks[weights] = build_model("tiny")
+        networks[weights].load_state_dict(last[weights])
+    scenes = validation_set(run["val_per_class"])
+    logged = _records(straight, "val")[-1]["psnr"]
+    assert logged == pytest.approx(validate(networks["ema"], scenes)["psnr"], abs=1e-6)
+    assert logged != pytest.approx(validate(networks["model"], scenes)["psnr"], abs=1e-6)
+    resumed = tmp_path / "resumed"
+    train(TrainConfig(run_dir=str(resumed), steps=2, **run))
+    train(TrainConfig(run_dir=str(resumed), steps=4, **run))
+    again = load_checkpoint(resumed / "last.pt")
+    for name, tensor in last["ema"].items():
+        torch.testing.assert_close(again["ema"][name], tensor, rtol=1e-5, atol=1e-6)
 
 
 def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):

@@ -111,6 +111,12 @@ class TrainConfig:
     log_every: int = flag(10, "steps between metrics lines")
     progress: bool = field(default=True, metadata={"help": "", "choices": None})
     """Show a progress bar on stderr (the ``--no-progress`` flag)."""
+    ema_decay: float = flag(
+        0.0,
+        "keep an exponential moving average of the weights, this much of it kept each step "
+        "(0.999: about the last 1,000 steps); validations score it and best.pt holds it; "
+        "0: off",
+    )
     init: str = flag(
         "",
         "a checkpoint of the same member whose weights start the run (fine-tuning); the "
@@ -137,3 +143,5 @@ class TrainConfig:
         check_share("ideal_share", self.ideal_share)
         check_share("display_share", self.display_share)
         check_final_term(self.loss)
+        if not 0 <= self.ema_decay < 1:
+            raise ValueError(f"--ema-decay {self.ema_decay}: must be in [0, 1)")

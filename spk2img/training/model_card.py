@@ -200,6 +200,14 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     init_flag = f" --init {Path(init['path']).name}" if init else ""
     loss = tc.get("loss", "l1")  # runs from before --loss trained with L1
     loss_flag = f" --loss {loss}" if loss != "l1" else ""
+    ema_decay = tc.get("ema_decay", 0.0)
+    ema_flag = f" --ema-decay {ema_decay:g}" if ema_decay else ""
+    ema_line = (
+        f"- weights: the moving average of the trained weights, {ema_decay:g} of it kept each "
+        "step (`--ema-decay`), which the validations scored\n"
+        if ema_decay and not soup
+        else ""
+    )
     resume = (
         f"- to continue: `mkdir -p runs/{run_dir.name} && cp {run_dir}/last.pt "
         f"runs/{run_dir.name}/`, then the command above (batches are a function of seed and "
@@ -301,8 +309,8 @@ Spk2ImgNet (Zhao et al., CVPR 2021) — SALI, residual features, pyramid deforma
 - command: `spk2img train --member {member} --run-dir {run_dir.name} --steps {tc["steps"]}
   --batch-size {tc["batch_size"]} --patch {tc["patch"]} --lr {tc["lr"]} {data_flags}
   --ideal-share {ideal_share} --display-share {display_share}
-  --threads {tc["threads"]}{init_flag}{loss_flag}`
-{init_line}{soup_line}{history_line}{resume}
+  --threads {tc["threads"]}{init_flag}{loss_flag}{ema_flag}`
+{init_line}{soup_line}{ema_line}{history_line}{resume}
 {body}
 ## Validation during training
 | step | hours | procedural PSNR dB | natural PSNR dB |

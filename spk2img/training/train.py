@@ -40,6 +40,7 @@ from spk2img.sim.sources import SourceIndex
 
 from .config import TrainConfig
 from .data import Batches, DataMix, SampleMaker
+from .ema import WeightAverage
 from .loss import hierarchical_loss
 from .stop import StopRequest
 from .synthesis import batch_generator, film_plans
@@ -166,6 +167,10 @@ def train(cfg: TrainConfig) -> dict:
         init_from = load_initial_weights(model, cfg.init)
     else:
         init_from = None
+    average = WeightAverage(model, cfg.ema_decay) if cfg.ema_decay else None
+    if average and start and "ema" in state:  # a run that averaged before: its average goes on
+        average.model.load_state_dict(state["ema"])
+    scored = average.model if average else model  # what validation scores and best.pt keeps
     commit = state.get("commit", "unknown") if start else git_commit()  # the code that trains
     origin = {  # what trains and from what: in every checkpoint and each (re)start's log record
         "member": cfg.member,
@@ -226,10 +231,10 @@ def train(cfg: TrainConfig) -> dict:
     if run.main and start:  # best.pt may be gone (the repository keeps last.pt alone)
         best = max(best, logged_best(run_dir / "metrics.jsonl", selection, start))
 
-    def checkpoint(path: Path, step: int, **extra) -> None:
+    def checkpoint(path: Path, step: int, network: torch.nn.Module, **extra) -> None:
         save_checkpoint(
             path,
-            model=model.state_dict(),
+            model=network.state_dict(),
             optimizer=optimizer.state_dict(),
             step=step,
             wall_s=wall,
@@ -270,6 +275,8 @@ def train(cfg: TrainConfig) -> dict:
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
+            if average:
+                average.update(model)
             wall += time.perf_counter() - t0
             done = step + 1
             stopping = stop.agreed(run.world) and done < cfg.steps
@@ -294,20 +301,20 @@ def train(cfg: TrainConfig) -> dict:
                     wall_s=wall,
                 )
             if (done % cfg.val_every == 0 and not stopping) or done == cfg.steps:
-                val = validate(model, val_sets["procedural"])
+                val = validate(scored, val_sets["procedural"])
                 if val_sets["natural"]:
-                    val["natural"] = validate(model, val_sets["natural"])
+                    val["natural"] = validate(scored, val_sets["natural"])
                 if val_sets["real_video"]:
-                    val["real_video"] = validate_real_video(model, val_sets["real_video"])
+                    val["real_video"] = validate_real_video(scored, val_sets["real_video"])
                 log.write(kind="val", step=done, wall_s=wall, **val)
                 chosen = selection_score(val, selection)
                 if chosen > best:
                     best = chosen
-                    checkpoint(run_dir / "best.pt", done, val_psnr=best, val_set=selection)
+                    checkpoint(run_dir / "best.pt", done, scored, val_psnr=best, val_set=selection)
                 model.train()
             periodic = time.monotonic() - saved_at >= CHECKPOINT_SECONDS
             if done % cfg.checkpoint_every == 0 or done == cfg.steps or periodic or stopping:
-                checkpoint(last, done)
+                checkpoint(last, done, model, **({"ema": scored.state_dict()} if average else {}))
                 saved_at = time.monotonic()
             if stopping:
                 log.write(kind="stopped", step=done, wall_s=wall, signal=stop.name)
