@@ -572,7 +572,7 @@ def test_checkpoint_reader_round_trips_and_refuses_what_is_not_a_checkpoint(tmp_
 
 def test_average_checkpoints_script_reads_fractions_and_refuses_bad_input_in_one_line(tmp_path):
     """scripts/average_checkpoints.py: ``--weights 2/3,1/3`` is a weighted mean; a missing file
-    or weights that are not numbers exit 2 with one line, as the spk2img CLI does."""
+    exits 2 with one line, as the spk2img CLI does (the weights' checks: the test below)."""
     config = get_config("tiny")
     paths = []
     for seed in (0, 1):
@@ -591,14 +591,10 @@ def test_average_checkpoints_script_reads_fractions_and_refuses_bad_input_in_one
     assert done.returncode == 0, done.stderr
     weights = [part["weight"] for part in load_checkpoint(out)["averaged_from"]]
     np.testing.assert_allclose(weights, [2 / 3, 1 / 3])
-    for args, message in [
-        ([str(tmp_path / "missing.pt"), str(paths[0])], "no such checkpoint"),
-        ([*map(str, paths), "--weights", "2/3,one"], "is not a list of numbers"),
-        ([*map(str, paths), "--weights", "0.5,0.6"], "sum to 1"),
-    ]:
-        done = subprocess.run([*script, *args, "--out", str(out)], capture_output=True, text=True)
-        assert done.returncode == 2 and message in done.stderr
-        assert done.stderr.startswith("average_checkpoints: ") and done.stderr.count("\n") == 1
+    args = [str(tmp_path / "missing.pt"), str(paths[0]), "--weights", "2/3,1/3"]
+    done = subprocess.run([*script, *args, "--out", str(out)], capture_output=True, text=True)
+    assert done.returncode == 2 and "no such checkpoint" in done.stderr
+    assert done.stderr.startswith("average_checkpoints: ") and done.stderr.count("\n") == 1
 
 
 def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
