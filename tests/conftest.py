@@ -76,30 +76,24 @@ def tiny_checkpoint(run_dir):
 
 
 @pytest.fixture(scope="session")
-def tiny_export(tiny_checkpoint, run_dir):
-    """The tiny checkpoint exported with its block graphs, as ``spk2img export`` does (alone in
-    its folder); built once a run (about a minute), shared by the workers."""
-    from onnx_models import write_tiny_export
-
-    folder = built_once(
-        run_dir, "onnx", lambda d: write_tiny_export(tiny_checkpoint, d / "tiny.onnx")
-    )
-    return folder / "tiny.onnx"
-
-
-@pytest.fixture(scope="session")
 def three_block_export(run_dir):
     """A random-weight :data:`~onnx_models.THREE_BLOCKS` member (27-frame window) exported
-    (one-shot and block graphs) and verified, its checkpoint beside it (same stem, ``.pt``);
-    built once a run, shared by the workers."""
+    (one-shot and block graphs, as ``spk2img export`` does) and verified, its checkpoint beside it
+    (same stem, ``.pt``); built once a run (about half a minute), shared by the workers."""
     from onnx_models import THREE_BLOCKS, write_tiny_checkpoint, write_tiny_export
 
     def build(folder: Path) -> None:
         write_tiny_export(
-            write_tiny_checkpoint(folder / "three.pt", THREE_BLOCKS), folder / "three.onnx"
+            write_tiny_checkpoint(folder / "three.pt", THREE_BLOCKS, seed=2), folder / "three.onnx"
         )
 
     return built_once(run_dir, "three-blocks", build) / "three.onnx"
+
+
+@pytest.fixture(scope="session")
+def three_block_checkpoint(three_block_export):
+    """The checkpoint that :func:`three_block_export` exported."""
+    return three_block_export.with_suffix(".pt")
 
 
 @pytest.fixture(scope="session")

@@ -109,14 +109,14 @@ def test_shipped_block_graphs_equal_the_shipped_one_shot_graph(scene_stream):
     assert np.isfinite(frames).all() and frames.std() > 0.01  # a real picture, not a constant
 
 
-def test_parts_of_different_models_are_refused(tmp_path, tiny_export):
+def test_parts_of_different_models_are_refused(tmp_path, three_block_export):
     """An encoder and a head holding different weights never run together."""
     for part, path in block_graph_paths(default_model_path()).items():
         (tmp_path / f"m.{part}.onnx").write_bytes(path.read_bytes())
     tmp_path.joinpath("m.onnx").write_bytes(default_model_path().read_bytes())
     OnnxBlockCodec(tmp_path / "m.onnx")  # the copy loads
-    tiny_head = block_graph_paths(tiny_export)["head"]
-    (tmp_path / "m.head.onnx").write_bytes(tiny_head.read_bytes())
+    other_head = block_graph_paths(three_block_export)["head"]
+    (tmp_path / "m.head.onnx").write_bytes(other_head.read_bytes())
     with pytest.raises(InputError, match="different weights"):
         OnnxBlockCodec(tmp_path / "m.onnx")
 

@@ -3,6 +3,7 @@ DeformConv graph, reduced precision, and the CLI paths that use an export."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -11,7 +12,7 @@ import onnxruntime as ort
 import pytest
 import torch
 import torch.nn.functional as F
-from onnx_models import EXPORT_EXAMPLE_SIZE, TINY_TRAIN_COMMIT
+from onnx_models import EXPORT_EXAMPLE_SIZE, THREE_BLOCKS, TINY_TRAIN_COMMIT
 
 from spk2img import __version__
 from spk2img.cli import main
@@ -21,8 +22,6 @@ from spk2img.export.metadata import weights_sha256
 from spk2img.export.onnx_export import (
     ExportConfig,
     check_graph,
-    checkpoint_source,
-    export_onnx,
     one_shot_io,
     operator_counts,
     random_source,
@@ -38,6 +37,7 @@ from spk2img.model.checkpoint import (
     load_model,
     save_checkpoint,
 )
+from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.runtime.block_codec import block_graph_paths
 from spk2img.runtime.onnx_backend import OnnxModel
 from spk2img.runtime.torch_backend import TorchPredictor
@@ -51,19 +51,17 @@ def _windows(seed: int, batch: int, height: int, width: int) -> np.ndarray:
     return np.concatenate([hard_cases.simulated_windows(rng, height, width) for _ in range(batch)])
 
 
-def test_graph_contract(tiny_export):
-    model = onnx.load(tiny_export)
-    check_graph(
-        model, one_shot_io(41)
-    )  # checker (full), standard domains, I/O names and dynamic dims
+def test_graph_contract(three_block_export):
+    model = onnx.load(three_block_export)
+    check_graph(model, one_shot_io(27))  # checker (full), standard domains, I/O names, dynamic dims
     ops = operator_counts(model)
     assert {domain for domain, _ in ops} == {""}
     assert ops[("", "GridSample")] == 3 and ("", "DeformConv") not in ops
     assert [(o.domain, o.version) for o in model.opset_import] == [("", 18)]
     assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in model.graph.initializer)
     # the one-shot graph, and the block encoder and head beside it: one file each
-    files = sorted(p.name for p in tiny_export.parent.iterdir())
-    assert files == ["tiny.encoder.onnx", "tiny.head.onnx", "tiny.onnx"]
+    files = sorted(p.name for p in three_block_export.parent.glob("*.onnx"))
+    assert files == ["three.encoder.onnx", "three.head.onnx", "three.onnx"]
 
 
 def _io_dims(model: onnx.ModelProto) -> dict[str, list[str | int]]:
@@ -73,11 +71,11 @@ def _io_dims(model: onnx.ModelProto) -> dict[str, list[str | int]]:
     }
 
 
-def test_block_graph_contract(tiny_export):
+def test_block_graph_contract(three_block_export):
     """The encoder's and head's I/O as docs/export.md states it, with named dims, and the same
     weights and metadata as the one-shot graph."""
-    one_shot = {p.key: p.value for p in onnx.load(tiny_export).metadata_props}
-    parts = {part: onnx.load(path) for part, path in block_graph_paths(tiny_export).items()}
+    one_shot = {p.key: p.value for p in onnx.load(three_block_export).metadata_props}
+    parts = {part: onnx.load(path) for part, path in block_graph_paths(three_block_export).items()}
     io = {part: _io_dims(model) for part, model in parts.items()}
     assert io["encoder"] == {
         "block": ["batch", 13, "height", "width"],
@@ -88,8 +86,8 @@ def test_block_graph_contract(tiny_export):
         },
     }
     assert io["head"] == {
-        **{f"feat_l{i}": ["batch", 5, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
-        **{f"nbr_l{i}": ["batch", 4, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
+        **{f"feat_l{i}": ["batch", 3, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
+        **{f"nbr_l{i}": ["batch", 2, 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
         **{f"key_l{i}": ["batch", 12, f"h_l{i}", f"w_l{i}"] for i in (1, 2)},
         "image": ["batch", 1, "padded_height", "padded_width"],
     }
@@ -99,20 +97,20 @@ def test_block_graph_contract(tiny_export):
         assert {domain for domain, _ in operator_counts(model)} == {""}
 
 
-def test_metadata(tiny_export, tiny_checkpoint):
-    meta = OnnxModel(tiny_export, threads=1).metadata
-    state = load_checkpoint(tiny_checkpoint)
-    assert meta["name"] == "spk2img-tiny" and meta["member"] == "tiny"
+def test_metadata(three_block_export, three_block_checkpoint):
+    meta = OnnxModel(three_block_export, threads=1).metadata
+    state = load_checkpoint(three_block_checkpoint)
+    assert meta["name"] == "spk2img-custom" and meta["member"] == "custom"
     assert meta["version"] == __version__
     assert json.loads(meta["config"]) == state["config"]
-    assert (meta["window"], meta["rate"]) == ("41", "0.6")
+    assert (meta["window"], meta["rate"]) == ("27", "0.6")
     assert meta["weights_sha256"] == weights_sha256(state["model"])
     commit = (meta["training_commit"], meta["training_commit_source"])
     assert commit == (TINY_TRAIN_COMMIT, "checkpoint")
     random_meta = random_source("tiny").metadata  # no checkpoint: the exporting tree's commit
     assert random_meta["training_commit_source"] in ("git HEAD at export", "unknown")
     assert (meta["graph"], meta["opset"], meta["precision"]) == ("grid_sample", "18", "fp32")
-    assert meta["source"] == "tiny.pt, step 0"
+    assert meta["source"] == "three.pt, step 0"
 
 
 def test_weights_sha256_is_defined_by_names_and_values():
@@ -124,9 +122,12 @@ def test_weights_sha256_is_defined_by_names_and_values():
     assert weights_sha256(changed) != weights_sha256(state)
 
 
-def test_verify_cli_quick_passes_on_hard_cases(tiny_export, tiny_checkpoint, tmp_path):
+def test_verify_cli_quick_passes_on_hard_cases(
+    three_block_export, three_block_checkpoint, tmp_path
+):
     out = tmp_path / "verify.json"
-    args = ["verify", str(tiny_export), "--checkpoint", str(tiny_checkpoint), "--quick"]
+    checkpoint = ["--checkpoint", str(three_block_checkpoint)]
+    args = ["verify", str(three_block_export), *checkpoint, "--quick"]
     assert main([*args, "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     assert report["passed"] and report["atol"] == ATOL
@@ -146,60 +147,50 @@ def test_verify_cli_quick_passes_on_hard_cases(tiny_export, tiny_checkpoint, tmp
         assert r["nonfinite"] == 0 and r["max_abs"] <= ATOL
 
 
-def test_verify_finds_its_weights_and_refuses_others(tiny_export, tiny_checkpoint, tmp_path):
+def test_verify_finds_its_weights_and_refuses_others(three_block_export, tmp_path):
+    alone = tmp_path / "alone.onnx"  # without the checkpoint beside it
+    alone.write_bytes(three_block_export.read_bytes())
     with pytest.raises(InputError, match="--checkpoint"):
-        reference_model(tiny_export)
-    other = random_source("tiny", seed=4).model
+        reference_model(alone)
+    other = random_source(THREE_BLOCKS, seed=4).model
     wrong = tmp_path / "wrong.pt"
     save_checkpoint(wrong, model=other.state_dict(), config=config_to_dict(other.config), step=0)
     with pytest.raises(InputError, match="weights_sha256"):
-        reference_model(tiny_export, wrong)
-    assert main(["verify", str(tiny_export), "--checkpoint", str(wrong)]) == 2
+        reference_model(three_block_export, wrong)
+    assert main(["verify", str(three_block_export), "--checkpoint", str(wrong)]) == 2
     # a mismatch the verifier must catch: the graph against a different network
-    report = verify_onnx(tiny_export, other, hard_cases.size_cases(((17, 23),), threads=(1,)))
+    cases = hard_cases.size_cases(((17, 23),), threads=(1,))
+    report = verify_onnx(three_block_export, other, cases)
     assert not report.passed and "FAIL" in report.table()
 
 
-def test_rewritten_weights_give_the_graph_of_the_changed_network(tiny_export, tiny_checkpoint):
-    """The far-offset variant that verify checks: the tiny graph with the variant's offset
+def test_rewritten_weights_give_the_graph_of_the_changed_network(
+    three_block_export, three_block_checkpoint
+):
+    """The far-offset variant that verify checks: the graph with the variant's offset
     predictors written over its own runs as the variant does in torch (every tap about 1e5 px
     outside the image), where the graph as exported does not; a weight the graph does not hold by
     its name and shape leaves it untouched."""
-    model = load_model(tiny_checkpoint)
+    model = load_model(three_block_checkpoint)
     far = hard_cases.far_offset_copy(model)
     own = model.state_dict()
     changed = {k: v for k, v in far.state_dict().items() if not torch.equal(v, own[k])}
     assert changed and all("conv_offset_mask" in k for k in changed)
-    graph = onnx.load(tiny_export)
+    graph = onnx.load(three_block_export)
     assert rewrite_weights(graph, changed)
-    windows = hard_cases.scene_cases()[0].spikes
+    windows = model.config.geometry.crop(hard_cases.scene_cases()[0].spikes, axis=1)
     session = ort.InferenceSession(graph.SerializeToString(), providers=["CPUExecutionProvider"])
     rewritten = session.run(None, {"spikes": windows})[0][:, 0]
     with torch.inference_mode():
         expected = far(torch.from_numpy(windows))[0][:, 0].numpy()
     assert np.abs(rewritten - expected).max() <= ATOL
-    unchanged = OnnxModel(tiny_export, 1)(windows)
+    unchanged = OnnxModel(three_block_export, 1)(windows)
     assert np.abs(unchanged - expected).max() > 10 * ATOL  # the graph as exported fails it
     before = graph.SerializeToString()
     key = next(iter(changed))
     assert not rewrite_weights(graph, {key: changed[key][:1], "nope": torch.zeros(1)})
     assert not rewrite_weights(graph, {key: changed[key].double()})
     assert graph.SerializeToString() == before
-
-
-def test_deform_conv_graph_matches_grid_sample_graph(three_block_export, tmp_path):
-    """The DeformConv graph of a network (the three-block member: the cheapest to trace) computes
-    what its GridSample graph does, one DeformConv node where the other samples."""
-    source = checkpoint_source(three_block_export.with_suffix(".pt"))
-    model = export_onnx(source, tmp_path / "dc.onnx", ExportConfig(graph="deform_conv"))
-    ops, grid_ops = operator_counts(model), operator_counts(onnx.load(three_block_export))
-    assert ops[("", "DeformConv")] == grid_ops[("", "GridSample")] > 0
-    assert ("", "GridSample") not in ops and {domain for domain, _ in ops} == {""}
-    assert [(o.domain, o.version) for o in model.opset_import] == [("", 19)]
-    deform, grid = OnnxModel(tmp_path / "dc.onnx", 1), OnnxModel(three_block_export, 1)
-    for windows in (hard_cases.scene_cases()[0].spikes, _windows(5, 2, 17, 23)):
-        windows = source.model.config.geometry.crop(windows, axis=1)  # the centred 27 frames
-        assert np.abs(deform(windows) - grid(windows)).max() <= ATOL
 
 
 def _ran(op: str, function, *args, **kwargs) -> tuple[bool, torch.Tensor]:
@@ -242,11 +233,20 @@ def test_bilinear_sampling_is_traced_as_one_op_and_nothing_else_is():
     assert (F.grid_sample, F.interpolate) == original
 
 
-def test_paper_random_weights_export_and_verify(tmp_path):
-    """The published width and depth trace and verify (block graphs: the tiny and lite
-    tests; the code path is the same for every member)."""
+def test_paper_width_exports_as_deform_conv_nodes_and_verifies(tmp_path):
+    """The published width and depth (64 channels, 8 deformable groups, 10 residual blocks)
+    traced with each deformable conv as one standard ``DeformConv`` node (opset 19, where the
+    other tests trace the ``GridSample`` graph, the same code for every member), verified
+    against torch like every export: on the hard cases, then at two more sizes."""
     source = random_source("paper", seed=0)
-    result = export_verified(source, tmp_path / "paper.onnx", EXAMPLE, block_graphs=False)
+    config = dataclasses.replace(EXAMPLE, graph="deform_conv")
+    result = export_verified(source, tmp_path / "paper.onnx", config, block_graphs=False)
+    model = onnx.load(result.path)
+    ops = operator_counts(model)
+    deform_convs = sum(isinstance(m, ModulatedDeformConv2d) for m in source.model.modules())
+    assert ops[("", "DeformConv")] == deform_convs == source.model.config.pyramid_levels + 1
+    assert ("", "GridSample") not in ops and {domain for domain, _ in ops} == {""}
+    assert [(o.domain, o.version) for o in model.opset_import] == [("", 19)]
     cases = hard_cases.size_cases(((17, 23), (24, 32)), threads=(1,))
     report = verify_onnx(result.path, source.model, cases)
     assert result.parity.passed and report.passed, report.table()
@@ -255,21 +255,25 @@ def test_paper_random_weights_export_and_verify(tmp_path):
     )
 
 
-def test_onnx_backend_agrees_with_torch_predictor(tiny_export, tiny_checkpoint):
-    windows = _windows(6, 3, 21, 30)
-    torch_out = TorchPredictor(tiny_checkpoint, threads=1)(windows)
-    onnx_out = OnnxModel(tiny_export, threads=1)(windows)
+def test_onnx_backend_agrees_with_torch_predictor(three_block_export, three_block_checkpoint):
+    windows = THREE_BLOCKS.geometry.crop(_windows(6, 3, 21, 30), axis=1)
+    torch_out = TorchPredictor(three_block_checkpoint, threads=1)(windows)
+    onnx_out = OnnxModel(three_block_export, threads=1)(windows)
     assert onnx_out.shape == torch_out.shape == (3, 21, 30)
+    assert torch_out.std() > 1e-3  # an image, not the 0 that a random network can give
     assert np.abs(onnx_out - torch_out).max() <= ATOL
 
 
-def test_reconstruct_cli_onnx_and_torch_backends_agree(tiny_export, tiny_checkpoint, tmp_path):
+def test_reconstruct_cli_onnx_and_torch_backends_agree(
+    three_block_export, three_block_checkpoint, tmp_path
+):
     spikes = (np.random.default_rng(7).uniform(size=(60, 19, 26)) < 0.3).astype(np.uint8)
     np.save(tmp_path / "x.npy", spikes)
     common = ["reconstruct", str(tmp_path / "x.npy"), "--method", "net", "--centers", "20,30,39"]
     common += ["--no-progress", "--threads", "1"]
-    assert main([*common, "--out", str(tmp_path / "o.npz"), "--model", str(tiny_export)]) == 0
-    torch_args = ["--backend", "torch", "--checkpoint", str(tiny_checkpoint)]
+    onnx_args = ["--model", str(three_block_export)]
+    assert main([*common, "--out", str(tmp_path / "o.npz"), *onnx_args]) == 0
+    torch_args = ["--backend", "torch", "--checkpoint", str(three_block_checkpoint)]
     assert main([*common, "--out", str(tmp_path / "t.npz"), *torch_args]) == 0
     onnx_run, torch_run = np.load(tmp_path / "o.npz"), np.load(tmp_path / "t.npz")
     assert onnx_run["frames"].shape == (3, 19, 26)
@@ -278,11 +282,11 @@ def test_reconstruct_cli_onnx_and_torch_backends_agree(tiny_export, tiny_checkpo
 
 
 @pytest.mark.parametrize("precision", ["fp16", "int8"])
-def test_reduced_precision_variants_run_close_to_fp32(tiny_export, tmp_path, precision):
+def test_reduced_precision_variants_run_close_to_fp32(three_block_export, tmp_path, precision):
     out = tmp_path / f"{precision}.onnx"
-    model = reduce_precision(tiny_export, out, precision)  # includes check_graph
+    model = reduce_precision(three_block_export, out, precision)  # includes check_graph
     assert {p.key: p.value for p in model.metadata_props}["precision"] == precision
-    report = precision_report(tiny_export, out)
+    report = precision_report(three_block_export, out)
     assert report["nonfinite"] == 0 and report["psnr_vs_fp32_db"] >= MIN_PSNR_VS_FP32
 
 

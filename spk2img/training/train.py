@@ -306,6 +306,10 @@ def train(cfg: TrainConfig) -> dict:
                     val["natural"] = validate(scored, val_sets["natural"])
                 if val_sets["real_video"]:
                     val["real_video"] = validate_real_video(scored, val_sets["real_video"])
+                    if average:  # the weights as trained, beside their average
+                        val["real_video_trained"] = validate_real_video(
+                            model, val_sets["real_video"]
+                        )
                 log.write(kind="val", step=done, wall_s=wall, **val)
                 chosen = selection_score(val, selection)
                 if chosen > best:
