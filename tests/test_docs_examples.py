@@ -128,6 +128,7 @@ SHORTENED = {
         ("range(7)", "range(1)"),
         ("(1, 2)", "(2,)"),
         ("spk2img-default.onnx", "spk2img-tiny.onnx"),
+        ("250, 400)", "64, 96)"),
     ],
     ("docs/binning.md", "k = spk2img.suggest_binning(spikes)  # 1 for a normally lit stream"): [
         ("stride=20", "centers=[60]")
