@@ -148,6 +148,9 @@ def test_verify_cli_quick_passes_on_hard_cases(
 
 
 def test_verify_finds_its_weights_and_refuses_others(three_block_export, tmp_path):
+    beside = reference_model(three_block_export)  # the checkpoint of the same stem
+    expected = OnnxModel(three_block_export, 1).metadata["weights_sha256"]
+    assert weights_sha256(beside.state_dict()) == expected
     alone = tmp_path / "alone.onnx"  # without the checkpoint beside it
     alone.write_bytes(three_block_export.read_bytes())
     with pytest.raises(InputError, match="--checkpoint"):
