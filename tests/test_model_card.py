@@ -12,12 +12,13 @@ SCORES = {"psnr": 30.0, "ssim": 0.9, "psnr_fast": 25.0}
 RESULTS = {"procedural": {"network": SCORES, "tfp_best": SCORES, "tfi": SCORES}}
 
 
-def _two_step_run(tmp_path, standin_model):
-    """A 2-step `tiny` run's folder and a stand-in graph named as the shipped `real`."""
+def _two_step_run(tmp_path, standin_model, **flags):
+    """A 2-step `tiny` run's folder (more ``TrainConfig`` ``flags`` if given) and a stand-in
+    graph named as the shipped `real`."""
     run = tmp_path / "run"
     config = dict(member="tiny", patch=16, batch_size=2, val_every=2, val_per_class=1)
     fast = dict(log_every=1, progress=False, warmup_steps=1, workers=0)
-    train(TrainConfig(steps=2, run_dir=str(run), **config, **fast))
+    train(TrainConfig(steps=2, run_dir=str(run), **config, **fast, **flags))
     onnx = tmp_path / "spk2img-real.onnx"
     shutil.copy(standin_model, onnx)
     return run, onnx
@@ -69,10 +70,7 @@ def test_card_names_every_hardware_that_trained_the_checkpoint(tmp_path, standin
 
 def test_card_of_a_run_with_a_weight_average_says_so(tmp_path, standin_model):
     """A run with ``--ema-decay`` ships its average: the card's command and weights say so."""
-    run = tmp_path / "run"
-    config = dict(member="tiny", patch=16, batch_size=2, val_every=2, val_per_class=1)
-    fast = dict(log_every=1, progress=False, warmup_steps=1, workers=0)
-    train(TrainConfig(steps=2, run_dir=str(run), ema_decay=0.99, **config, **fast))
-    card = render(run / "best.pt", standin_model, run, RESULTS, history="")
+    run, onnx = _two_step_run(tmp_path, standin_model, ema_decay=0.99)
+    card = render(run / "best.pt", onnx, run, RESULTS, history="")
     assert " --ema-decay 0.99`" in card
     assert "- weights: the moving average of the trained weights, 0.99 of it kept" in card

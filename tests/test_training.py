@@ -240,9 +240,8 @@ def test_a_run_with_ema_validates_and_keeps_the_average(tmp_path):
     validation scores the average and best.pt holds it (a resumed run continues the average:
     test_resume_continues_the_same_loss_curve)."""
     run = TINY_RUN | {"ema_decay": 0.5, "val_every": 4}
-    straight = tmp_path / "straight"
-    train(TrainConfig(run_dir=str(straight), steps=4, **run))
-    last, best = (load_checkpoint(straight / f"{n}.pt") for n in ("last", "best"))
+    train(TrainConfig(run_dir=str(tmp_path), steps=4, **run))
+    last, best = (load_checkpoint(tmp_path / f"{n}.pt") for n in ("last", "best"))
     assert best["step"] == 4 and last["model"].keys() == last["ema"].keys()
     assert any(not torch.equal(last["model"][k], last["ema"][k]) for k in last["model"])
     for name, tensor in last["ema"].items():
@@ -252,7 +251,7 @@ def test_a_run_with_ema_validates_and_keeps_the_average(tmp_path):
         networks[weights] = build_model("tiny")
         networks[weights].load_state_dict(last[weights])
     scenes = validation_set(run["val_per_class"])
-    logged = _records(straight, "val")[-1]["psnr"]
+    logged = _records(tmp_path, "val")[-1]["psnr"]
     assert logged == pytest.approx(validate(networks["ema"], scenes)["psnr"], abs=1e-6)
     assert logged != pytest.approx(validate(networks["model"], scenes)["psnr"], abs=1e-6)
 

@@ -318,7 +318,9 @@ def train(cfg: TrainConfig) -> dict:
                 model.train()
             periodic = time.monotonic() - saved_at >= CHECKPOINT_SECONDS
             if done % cfg.checkpoint_every == 0 or done == cfg.steps or periodic or stopping:
-                checkpoint(last, done, model, **({"ema": scored.state_dict()} if average else {}))
+                checkpoint(
+                    last, done, model, **({"ema": average.model.state_dict()} if average else {})
+                )
                 saved_at = time.monotonic()
             if stopping:
                 log.write(kind="stopped", step=done, wall_s=wall, signal=stop.name)
