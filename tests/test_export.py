@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import onnx
@@ -12,20 +13,24 @@ import onnxruntime as ort
 import pytest
 import torch
 import torch.nn.functional as F
+from onnx import numpy_helper
 from onnx_models import EXPORT_EXAMPLE_SIZE, THREE_BLOCKS, TINY_TRAIN_COMMIT
 
 from spk2img import __version__
 from spk2img.cli import main
 from spk2img.errors import InputError
-from spk2img.export import hard_cases
+from spk2img.export import hard_cases, pipeline
+from spk2img.export.block_graphs import block_parity
 from spk2img.export.metadata import weights_sha256
 from spk2img.export.onnx_export import (
     ExportConfig,
     check_graph,
+    graph_props,
     one_shot_io,
     operator_counts,
     random_source,
-    rewrite_weights,
+    weight_arrays,
+    write_weights,
 )
 from spk2img.export.pipeline import export_verified
 from spk2img.export.quantize import MIN_PSNR_VS_FP32, precision_report, reduce_precision
@@ -39,7 +44,7 @@ from spk2img.model.checkpoint import (
 )
 from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.runtime.block_codec import block_graph_paths
-from spk2img.runtime.onnx_backend import OnnxModel
+from spk2img.runtime.onnx_backend import OnnxModel, shipped_models
 from spk2img.runtime.torch_backend import TorchPredictor
 
 torch.set_num_threads(1)
@@ -170,17 +175,17 @@ def test_verify_finds_its_weights_and_refuses_others(three_block_export, tmp_pat
 def test_rewritten_weights_give_the_graph_of_the_changed_network(
     three_block_export, three_block_checkpoint
 ):
-    """The far-offset variant that verify checks: the graph with the variant's offset
-    predictors written over its own runs as the variant does in torch (every tap about 1e5 px
-    outside the image), where the graph as exported does not; a weight the graph does not hold by
-    its name and shape leaves it untouched."""
+    """The far-offset variant that verify checks: the graph with the variant's weights written
+    over its own runs as the variant does in torch (every tap about 1e5 px outside the image),
+    where the graph as exported does not. A graph whose named weight is not the one it was
+    said to hold, or a constant two weights share whose new values differ, is left untouched."""
     model = load_model(three_block_checkpoint)
     far = hard_cases.far_offset_copy(model)
-    own = model.state_dict()
-    changed = {k: v for k, v in far.state_dict().items() if not torch.equal(v, own[k])}
-    assert changed and all("conv_offset_mask" in k for k in changed)
+    own, new = weight_arrays(model.state_dict()), weight_arrays(far.state_dict())
+    changed = {name for name in own if not np.array_equal(own[name], new[name])}
+    assert changed and all("conv_offset_mask" in name for name in changed)
     graph = onnx.load(three_block_export)
-    assert rewrite_weights(graph, changed)
+    assert changed <= write_weights(graph, own, new)
     windows = model.config.geometry.crop(hard_cases.scene_cases()[0].spikes, axis=1)
     session = ort.InferenceSession(graph.SerializeToString(), providers=["CPUExecutionProvider"])
     rewritten = session.run(None, {"spikes": windows})[0][:, 0]
@@ -190,10 +195,73 @@ def test_rewritten_weights_give_the_graph_of_the_changed_network(
     unchanged = OnnxModel(three_block_export, 1)(windows)
     assert np.abs(unchanged - expected).max() > 10 * ATOL  # the graph as exported fails it
     before = graph.SerializeToString()
-    key = next(iter(changed))
-    assert not rewrite_weights(graph, {key: changed[key][:1], "nope": torch.zeros(1)})
-    assert not rewrite_weights(graph, {key: changed[key].double()})
+    assert write_weights(graph, own, new) is None  # it no longer holds `own`
     assert graph.SerializeToString() == before
+
+
+def test_a_folded_weight_is_found_by_its_value_unless_two_weights_share_it():
+    """An initializer not named after a weight but equal to one (the exporter's reshaped PReLU
+    slopes) is rewritten with that weight's new value; one that two weights share is rewritten
+    where their new values agree and refused where they differ; other constants stay."""
+    slope = np.full((1,), 0.25, np.float32)
+
+    def graph():
+        folded = numpy_helper.from_array(slope.reshape(1, 1, 1, 1), "val_7")
+        constant = numpy_helper.from_array(np.full((1,), 2.0, np.float32), "scale")
+        return onnx.helper.make_model(
+            onnx.helper.make_graph([], "g", [], [], initializer=[folded, constant])
+        )
+
+    def values(model):
+        return {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+
+    model = graph()
+    written = write_weights(model, {"model.a": slope}, {"model.a": np.full((1,), 0.5, np.float32)})
+    assert written == {"model.a"}
+    assert values(model)["val_7"].shape == (1, 1, 1, 1) and values(model)["val_7"].item() == 0.5
+    assert values(model)["scale"].item() == 2.0
+    old = {"model.a": slope, "model.b": slope}
+    agree = {name: np.full((1,), 0.5, np.float32) for name in old}
+    assert write_weights(graph(), old, agree) == {"model.a", "model.b"}
+    model = graph()
+    differ = {"model.a": np.full((1,), 0.5, np.float32), "model.b": np.full((1,), 0.75, np.float32)}
+    assert write_weights(model, old, differ) is None
+    assert values(model)["val_7"].item() == 0.25
+
+
+def test_a_checkpoint_of_a_shipped_architecture_takes_its_traced_graphs(
+    tmp_path, capsys, monkeypatch
+):
+    """Exporting a fine-tuned ``default`` (every weight changed, the fusion's PReLU slopes, which
+    the exporter folds into constants of other names, included) writes its weights into the
+    shipped model's traced graphs instead of tracing: no written graph keeps a weight of the
+    shipped model, and the graphs agree with the changed network in torch, one-shot and
+    streamed, at sizes beside the export's own checks."""
+    shipped = shipped_models()["default"]
+    model = load_model(shipped.with_suffix(".pt"))
+    generator = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        for weight in model.parameters():
+            weight.mul_(1 + 0.05 * torch.randn(weight.shape, generator=generator))
+    tuned = tmp_path / "tuned.pt"
+    save_checkpoint(tuned, config=config_to_dict(model.config), model=model.state_dict(), step=9)
+    monkeypatch.setattr(pipeline, "export_onnx", None)  # tracing would fail
+    monkeypatch.setattr(pipeline, "export_block_graphs", None)
+    out = tmp_path / "tuned.onnx"
+    assert main(["export", str(tuned), "--out", str(out), "--deform-conv"]) == 0
+    assert "graphs: spk2img-default.onnx's trace" in capsys.readouterr().out
+    shipped_weights = {
+        array.tobytes()
+        for array in weight_arrays(load_model(shipped.with_suffix(".pt")).state_dict()).values()
+    }
+    for path in [out, *block_graph_paths(out).values()]:
+        graph = onnx.load(path)
+        assert graph_props(graph)["weights_sha256"] == weights_sha256(model.state_dict())
+        held = {numpy_helper.to_array(i).tobytes() for i in graph.graph.initializer}
+        assert not held & shipped_weights, path.name
+    cases = hard_cases.size_cases(((29, 41),), threads=(1,))
+    assert verify_onnx(out, model, cases).passed
+    assert block_parity(out, model, height=21, width=30) <= ATOL
 
 
 def _ran(op: str, function, *args, **kwargs) -> tuple[bool, torch.Tensor]:
@@ -236,14 +304,25 @@ def test_bilinear_sampling_is_traced_as_one_op_and_nothing_else_is():
     assert (F.grid_sample, F.interpolate) == original
 
 
-def test_paper_width_exports_as_deform_conv_nodes_and_verifies(tmp_path):
+def test_paper_width_exports_as_deform_conv_nodes_and_verifies(tmp_path, monkeypatch):
     """The published width and depth (64 channels, 8 deformable groups, 10 residual blocks)
     traced with each deformable conv as one standard ``DeformConv`` node (opset 19, where the
     other tests trace the ``GridSample`` graph, the same code for every member), verified
-    against torch like every export: on the hard cases, then at two more sizes."""
+    against torch like every export: on the hard cases, then at two more sizes. Offered a
+    reused graph that computes another network (here the shipped ``default``'s), the export
+    traces after all."""
+    shipped = shipped_models()["default"]
+
+    def wrong_reuse(template, source, out, config, block_graphs):
+        shutil.copy(shipped, out)
+        return True
+
+    monkeypatch.setattr(pipeline, "find_template", lambda *args: shipped)
+    monkeypatch.setattr(pipeline, "reuse_graphs", wrong_reuse)
     source = random_source("paper", seed=0)
     config = dataclasses.replace(EXAMPLE, graph="deform_conv")
     result = export_verified(source, tmp_path / "paper.onnx", config, block_graphs=False)
+    assert result.reused is None
     model = onnx.load(result.path)
     ops = operator_counts(model)
     deform_convs = sum(isinstance(m, ModulatedDeformConv2d) for m in source.model.modules())

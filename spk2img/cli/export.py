@@ -42,6 +42,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="do not also write OUT.encoder.onnx and OUT.head.onnx (the block encoder and the "
         "align-and-fuse head that streams use to encode each block once; fp32 only)",
     )
+    p.add_argument(
+        "--trace",
+        action="store_true",
+        help="trace the network even where a shipped model's graphs have its architecture (by "
+        "default those take its weights: seconds instead of a minute or more, checked the same)",
+    )
     p.add_argument("--name", help="metadata name (default spk2img-<member>)")
     p.add_argument(
         "--example-size", default="24x32", help="HxW the network is traced at (default 24x32)"
@@ -80,11 +86,20 @@ def run(args: argparse.Namespace) -> int:
     config = ExportConfig(graph=graph, example_height=height, example_width=width)
     try:
         result = export_verified(
-            source, args.out, config, args.precision, block_graphs=not args.no_block_graphs
+            source,
+            args.out,
+            config,
+            args.precision,
+            block_graphs=not args.no_block_graphs,
+            reuse=not args.trace,
         )
     except ExportError as exc:
         print(f"spk2img export: error: {exc}", file=sys.stderr)
         return 1
+    if result.reused is None:
+        print("graphs: traced")
+    else:
+        print(f"graphs: {result.reused.name}'s trace (same architecture) with these weights")
     print(result.parity.table())
     if result.precision:
         print(f"{args.precision} vs fp32 and ground truth: {json.dumps(result.precision)}")

@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import logging
 import warnings
-from collections import Counter
+from collections import Counter, defaultdict
+from collections.abc import Mapping
 from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import onnx
 import torch
 from onnx import helper, numpy_helper
@@ -145,23 +147,50 @@ def random_source(
     return ExportSource(model.eval(), metadata)
 
 
-def rewrite_weights(model: onnx.ModelProto, weights: dict[str, torch.Tensor]) -> bool:
-    """Write ``weights`` (state-dict key -> tensor) over the one-shot graph ``model``'s
-    initializers of the same names, in place: the graph that exporting the network with these
-    weights changed would give (tracing does not depend on the weights' values), without
-    tracing again. Returns False, the graph untouched, where a key has no initializer of its
-    shape and type (a graph whose optimiser folded that weight into another constant)."""
-    initializers = {init.name: init for init in model.graph.initializer}
-    arrays = {f"model.{key}": tensor.detach().cpu().numpy() for key, tensor in weights.items()}
-    for name, array in arrays.items():
-        init = initializers.get(name)
-        if init is None or tuple(init.dims) != array.shape:
-            return False
-        if helper.tensor_dtype_to_np_dtype(init.data_type) != array.dtype:
-            return False
-    for name, array in arrays.items():
-        initializers[name].CopyFrom(numpy_helper.from_array(array, name))
-    return True
+def weight_arrays(state_dict: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """A network's floating-point weights by the names the one-shot and block graphs give their
+    initializers (``model.<state-dict key>``), as float32 arrays."""
+    return {
+        f"model.{key}": tensor.detach().cpu().numpy().astype(np.float32)
+        for key, tensor in state_dict.items()
+        if tensor.is_floating_point()
+    }
+
+
+def write_weights(
+    model: onnx.ModelProto, old: dict[str, np.ndarray], new: dict[str, np.ndarray]
+) -> set[str] | None:
+    """Overwrite, in place, every float initializer of the graph ``model`` that holds a weight
+    of ``old`` (:func:`weight_arrays` of the weights it was traced with) with that weight's
+    value in ``new`` (same names): the graph that tracing the network with the new weights
+    would give (tracing does not depend on the weights' values). A weight is found by its name,
+    or, where the exporter folded it into a constant of another name (a PReLU slope reshaped
+    for broadcasting), by its exact values. Returns the names of the weights written; None,
+    the graph untouched, where an initializer equals several weights whose new values differ,
+    or a named one does not hold its old value."""
+    by_values = defaultdict(list)
+    for name, array in old.items():
+        by_values[array.tobytes()].append(name)
+    writes, written = [], set()
+    for init in model.graph.initializer:
+        if init.data_type != onnx.TensorProto.FLOAT:
+            continue
+        held = numpy_helper.to_array(init)
+        if init.name in old:
+            if not np.array_equal(held.ravel(), old[init.name].ravel()):
+                return None
+            names = [init.name]
+        else:
+            names = by_values.get(np.ascontiguousarray(held).tobytes(), [])
+        if not names:
+            continue  # a constant of the architecture
+        if len({new[name].tobytes() for name in names}) != 1:
+            return None
+        writes.append((init, new[names[0]].reshape(held.shape)))
+        written.update(names)
+    for init, array in writes:
+        init.CopyFrom(numpy_helper.from_array(np.ascontiguousarray(array), init.name))
+    return written
 
 
 def export_onnx(source: ExportSource, out: str | Path, config: ExportConfig) -> onnx.ModelProto:
@@ -302,9 +331,19 @@ def check_graph(model: onnx.ModelProto, expected_io: dict[str, list[str | int]])
     foreign = sorted({f"{d}::{op}" for d, op in counts if d not in STANDARD_DOMAINS})
     if foreign:
         raise ExportError(f"the exported graph uses non-standard operators: {', '.join(foreign)}")
-    io = {v.name: _dims(v) for v in [*model.graph.input, *model.graph.output]}
+    io = graph_io(model)
     if io != expected_io:
         raise ExportError(f"unexpected graph I/O: {io}, expected {expected_io}")
+
+
+def graph_io(model: onnx.ModelProto) -> dict[str, list[str | int]]:
+    """A graph's inputs and outputs in order: name -> dims (symbolic names or sizes)."""
+    return {v.name: _dims(v) for v in [*model.graph.input, *model.graph.output]}
+
+
+def graph_props(model: onnx.ModelProto) -> dict[str, str]:
+    """A graph's ``metadata_props`` as a dict."""
+    return {prop.key: prop.value for prop in model.metadata_props}
 
 
 def graph_kind(model: onnx.ModelProto) -> str:

@@ -35,7 +35,7 @@ from spk2img.model.config import Geometry
 from spk2img.runtime.onnx_backend import OnnxModel, graph_geometry
 from spk2img.sim.simulator import training_sample
 
-from .onnx_export import INPUT_NAME, check_graph, operator_counts
+from .onnx_export import INPUT_NAME, check_graph, graph_props, operator_counts
 
 PRECISIONS = ("fp32", "fp16", "int8")
 CALIBRATION_SEED = seed_of("calibration")
@@ -72,7 +72,7 @@ def reduce_precision(fp32_path: str | Path, out: str | Path, precision: str) -> 
     (names, float32, dims); returns it. Any graph: the one-shot one, the block encoder, the
     head."""
     fp32 = onnx.load(fp32_path)
-    metadata = {p.key: p.value for p in fp32.metadata_props}
+    metadata = graph_props(fp32)
     if precision == "fp16":
         model = convert_float_to_float16(fp32, keep_io_types=True)
         # the converter appends its input casts at the end and leaves some value_info types

@@ -45,8 +45,10 @@ from .onnx_export import (
     checkpoint_source,
     export_onnx,
     graph_kind,
+    graph_props,
     random_source,
-    rewrite_weights,
+    weight_arrays,
+    write_weights,
 )
 from .quantize import MIN_PSNR_VS_FP32, reduce_block_graphs, reduce_precision
 
@@ -152,7 +154,7 @@ def reference_model(onnx_path: str | Path, checkpoint: str | Path | None = None)
     its metadata. An ONNX file holds no PyTorch code, so one of these must exist.
     """
     onnx_path = Path(onnx_path)
-    metadata = {p.key: p.value for p in onnx.load(onnx_path).metadata_props}
+    metadata = graph_props(onnx.load(onnx_path))
     beside = onnx_path.with_suffix(".pt")
     if checkpoint is None and beside.is_file():
         checkpoint = beside
@@ -257,7 +259,7 @@ def verify_onnx(
 
 def graph_precision(graph: onnx.ModelProto) -> str:
     """The ``precision`` of a graph's metadata (``fp32`` when it has none)."""
-    return {p.key: p.value for p in graph.metadata_props}.get("precision", "fp32")
+    return graph_props(graph).get("precision", "fp32")
 
 
 def verify_block_graphs(
@@ -305,18 +307,19 @@ def _variant_graph(
     model: Spk2ImgNet, variant: str, onnx_path: Path, kind: str, precision: str, directory: Path
 ) -> tuple[Spk2ImgNet, Path]:
     """The network ``variant`` of ``model`` and its graph in ``directory``: the graph under test
-    (of graph kind ``kind`` and ``precision``), if fp32, with the variant's changed weights
-    written over its own (:func:`~spk2img.export.onnx_export.rewrite_weights`); any other
+    (of graph kind ``kind`` and ``precision``), if fp32, with the variant's weights
+    written over its own (:func:`~spk2img.export.onnx_export.write_weights`); any other
     exported afresh."""
     if variant != "far offsets":
         raise ValueError(f"unknown model variant {variant!r}")
     far = far_offset_copy(model)
     path = directory / "far-offsets.onnx"
-    own = model.state_dict()
-    changed = {k: v for k, v in far.state_dict().items() if not torch.equal(v, own[k])}
+    own, new = weight_arrays(model.state_dict()), weight_arrays(far.state_dict())
+    changed = {name for name in own if not np.array_equal(own[name], new[name])}
     graph = onnx.load(onnx_path) if precision == "fp32" else None
-    if graph is not None and rewrite_weights(graph, changed):
-        props = {p.key: p.value for p in graph.metadata_props if p.key != "weights_sha256"}
+    written = write_weights(graph, own, new) if graph is not None else None
+    if written is not None and changed <= written:
+        props = {k: v for k, v in graph_props(graph).items() if k != "weights_sha256"}
         del graph.metadata_props[:]
         onnx.helper.set_model_props(graph, props | {"name": "far-offsets variant"})
         onnx.save_model(graph, path)
