@@ -69,8 +69,11 @@ def test_card_names_every_hardware_that_trained_the_checkpoint(tmp_path, standin
 
 
 def test_card_of_a_run_with_a_weight_average_says_so(tmp_path, standin_model):
-    """A run with ``--ema-decay`` ships its average: the card's command and weights say so."""
+    """A run with ``--ema-decay`` ships its average (``best.pt``), or its trained weights
+    (``last.pt``): the card's command and weights say which."""
     run, onnx = _two_step_run(tmp_path, standin_model, ema_decay=0.99)
     card = render(run / "best.pt", onnx, run, RESULTS, history="")
     assert " --ema-decay 0.99`" in card
     assert "- weights: the moving average of the trained weights, 0.99 of it kept" in card
+    trained = render(run / "last.pt", onnx, run, RESULTS, history="")  # the trained weights
+    assert "- weights: the trained weights of this step, not the run's moving average" in trained

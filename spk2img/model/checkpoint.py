@@ -122,6 +122,7 @@ RELEASE_KEYS = (
     "hardware",
     "init_from",
     "averaged_from",
+    "weights",
 )
 
 

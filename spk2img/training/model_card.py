@@ -202,12 +202,15 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     loss_flag = f" --loss {loss}" if loss != "l1" else ""
     ema_decay = tc.get("ema_decay", 0.0)
     ema_flag = f" --ema-decay {ema_decay:g}" if ema_decay else ""
-    ema_line = (
-        f"- weights: the moving average of the trained weights, {ema_decay:g} of it kept each "
-        "step (`--ema-decay`), which the validations scored\n"
-        if ema_decay and not soup
-        else ""
-    )
+    ema_line = ""
+    if ema_decay and not soup:  # best.pt keeps the average (checkpoints before "weights" did)
+        ema_line = (
+            f"- weights: the moving average of the trained weights, {ema_decay:g} of it kept "
+            "each step (`--ema-decay`), which the validations scored\n"
+            if state.get("weights", "average") == "average"
+            else "- weights: the trained weights of this step, not the run's moving average "
+            "(`--ema-decay`) that its validations scored\n"
+        )
     resume = (
         f"- to continue: `mkdir -p runs/{run_dir.name} && cp {run_dir}/last.pt "
         f"runs/{run_dir.name}/`, then the command above (batches are a function of seed and "

@@ -100,6 +100,8 @@ def selection_words(selection: str) -> str:
         return "the procedural validation's PSNR"
     if selection == "real video":
         return "the real-video validation's PSNR (crops of the held-out real clips)"
+    if selection == "real video frames":  # set by hand on a candidate scored after the run
+        return "the real-video validation's PSNR on whole frames (docs/real_video.md)"
     regime = selection.removeprefix("natural").strip()
     return f"its {regime}-regime PSNR" if regime else "the mean PSNR of both regimes"
 
@@ -235,6 +237,7 @@ def train(cfg: TrainConfig) -> dict:
         save_checkpoint(
             path,
             model=network.state_dict(),
+            weights="trained" if network is model else "average",
             optimizer=optimizer.state_dict(),
             step=step,
             wall_s=wall,
