@@ -77,11 +77,13 @@ def export_verified(
         fp32_path = Path(tmp) / "fp32.onnx"
         template = find_template(source, config, block_graphs) if reuse else None
         checked = None
-        if template is not None and reuse_graphs(template, source, fp32_path, config, block_graphs):
-            try:
+        try:
+            if template is not None and reuse_graphs(
+                template, source, fp32_path, config, block_graphs
+            ):
                 checked = check_fp32(source, fp32_path, config, atol, progress, block_graphs)
-            except ExportError:
-                pass  # the reused graphs do not compute this network: trace it
+        except ExportError:
+            pass  # the reused graphs fail a check that a trace must pass: trace
         if checked is None:
             template = None
             export_onnx(source, fp32_path, config)
