@@ -9,7 +9,9 @@ overall mean between seeds) and over clips; the sections (``## ...``) written be
 in ``--md`` are kept. ``--add`` keeps the methods already in ``--json``
 (scored on the same windows: the same clips and seeds) and scores only the models given. A
 model is a shipped model's name or ``NAME=GRAPH.onnx``, an exported graph scored under NAME (a
-candidate before it ships: ``--add`` to a copy of the JSON compares it with the shipped ones).
+candidate before it ships: ``--add`` to a copy of the JSON compares it with the shipped ones);
+``--self-ensemble`` scores the models as their self-ensembles (four mirrored views averaged,
+:mod:`spk2img.runtime.self_ensemble`).
 Scoring a network takes minutes: on a terminal a bar per method counts its windows
 (``--no-progress`` hides it).
 """
@@ -41,9 +43,11 @@ def classical_methods() -> dict[str, Method]:
     }
 
 
-def network_method(model: str, threads: int) -> Method:
-    """``model``: a shipped model's name or an exported graph's path."""
-    return network_scorer(load_network(model, threads=threads, block_reuse=False).predict)
+def network_method(model: str, threads: int, self_ensemble: bool = False) -> Method:
+    """``model``: a shipped model's name or an exported graph's path; ``self_ensemble``: run
+    it as :mod:`spk2img.runtime.self_ensemble` does (four views averaged)."""
+    network = load_network(model, threads=threads, block_reuse=False, self_ensemble=self_ensemble)
+    return network_scorer(network.predict)
 
 
 def markdown(results: dict) -> str:
@@ -97,6 +101,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--json", type=Path, default=Path("docs/real_video.json"))
     p.add_argument("--md", type=Path, default=Path("docs/real_video.md"))
     p.add_argument("--add", action="store_true", help="add the models to --json's methods")
+    p.add_argument(
+        "--self-ensemble",
+        action="store_true",
+        help="score each model of --models as its self-ensemble (named 'NAME, self-ensemble')",
+    )
     add_progress_flags(p)
     args = p.parse_args(argv)
     start = time.perf_counter()
@@ -110,7 +119,8 @@ def main(argv: list[str] | None = None) -> None:
     methods = {} if earlier else classical_methods()
     for spec in filter(None, args.models.split(",")):
         name, _, graph = spec.partition("=")
-        methods[name] = network_method(graph or name, args.threads)
+        label = f"{name}, self-ensemble" if args.self_ensemble else name
+        methods[label] = network_method(graph or name, args.threads, args.self_ensemble)
     results = dict(earlier["methods"]) if earlier else {}
     for name, method in methods.items():
         start = time.perf_counter()
@@ -126,6 +136,7 @@ def main(argv: list[str] | None = None) -> None:
     command = (
         "python scripts/real_video_validation.py --data DATA "
         f"--models {args.models} --seeds {args.seeds}"
+        + (" --self-ensemble" if args.self_ensemble else "")
     )
     data = {
         "command": f"{earlier['command']} && {command} --add" if earlier else command,

@@ -138,6 +138,9 @@ class Reconstructor:
             window spans ``F * binning`` frames (plus one when even) and a dim pixel fires as
             often per network frame as a bright one; trades time resolution for noise. 1 (the
             default) merges none; :func:`suggest_binning` picks one from a stream's firing rate.
+        self_ensemble: for ``"net"``: also run the network on the stream's three mirror images
+            (left-right, up-down, both) and average the four images mirrored back
+            (:mod:`spk2img.runtime.self_ensemble`): four times the time for a better image.
 
     On the CPU the network keeps onnxruntime's memory arena: a stream's runs are of one frame
     size, so the arena saves allocating their buffers anew (8–21 % of a frame's time) and holds
@@ -159,12 +162,15 @@ class Reconstructor:
         device: str = "cpu",
         batch: int = 1,
         binning: int = 1,
+        self_ensemble: bool = False,
     ):
         method_window(method, window, binning, quality)  # the one check, before a model loads
         self.method, self.quality, self.binning = method, quality, binning
         runs_network = method == "net" and quality != "fast"
         if device != "cpu" and not runs_network:
             raise InputError(f"device {device!r} is for method net with quality best or balanced")
+        if self_ensemble and not runs_network:
+            raise InputError("self_ensemble is for method net with quality best or balanced")
         self.network: LoadedNetwork | None = None
         """The loaded network (``method="net"`` unless quality ``"fast"``)."""
         if runs_network:
@@ -177,6 +183,7 @@ class Reconstructor:
                 block_reuse=block_reuse,
                 batch=batch,
                 memory_arena=True,
+                self_ensemble=self_ensemble,
             )
         self.window = method_window(method, window, binning, quality, self.geometry)
         """Stream frames one reconstruction needs."""

@@ -82,7 +82,7 @@ def net_rows(
     The fp32 graphs come from :func:`~spk2img.export.pipeline.export_verified` (export, then
     torch parity); the int8 and fp16 ones from
     :func:`~spk2img.export.quantize.reduce_precision` of the fp32 grid_sample graph (the
-    benchmark measures their error itself).
+    benchmark measures their error itself); the self-ensemble runs that fp32 graph.
     """
     paths = {"torch": weights.checkpoint} if "torch" in backends else {}
     failed = {}
@@ -93,6 +93,10 @@ def net_rows(
         try:
             if backend == "onnx" and weights.onnx is not None:
                 path = weights.onnx
+            elif backend == "onnx-ensemble":  # the onnx row's graph, four calls a frame
+                if "onnx" not in paths:
+                    raise RuntimeError("the self-ensemble runs the onnx row's graph: none made")
+                path = paths["onnx"]
             else:
                 make_graph(weights, backend, path, paths.get("onnx"))
         except Exception as exc:  # noqa: BLE001 - the row reports the failure

@@ -28,7 +28,14 @@ from .profile import top_operators
 
 MD_NAME, JSON_NAME, PLOT_NAME = "bench.md", "bench.json", "images/pareto.png"
 DASH = "—"
-MARKERS = {"torch": "o", "onnx": "s", "onnx-deform": "D", "onnx-int8": "^", "onnx-fp16": "v"}
+MARKERS = {
+    "torch": "o",
+    "onnx": "s",
+    "onnx-deform": "D",
+    "onnx-int8": "^",
+    "onnx-fp16": "v",
+    "onnx-ensemble": "*",
+}
 """Plot marker of each network backend."""
 
 
@@ -89,7 +96,9 @@ def header(results: dict) -> str:
         f"{' and '.join(c['sensors'])}; seeds from {c['seed']}, disjoint from training and "
         "validation). *untrained*: random weights, timed only — no score is made up for them.",
         "- **max abs err**: largest pixel difference from the PyTorch fp32 row of the same "
-        "weights (over the benchmark set for trained weights, the timed window otherwise).",
+        "weights (over the benchmark set for trained weights, the timed window otherwise); "
+        "for `onnx-ensemble` (the self-ensemble: the mean of the network on the window and its "
+        "three mirror images) it is how far the mean moves the image, not an error.",
         "",
     ]
     return "\n".join(lines)

@@ -26,8 +26,13 @@ BACKENDS = {
     "onnx-deform": "onnxruntime, ONNX DeformConv graph, fp32",
     "onnx-int8": "onnxruntime, grid_sample graph, int8 weights",
     "onnx-fp16": "onnxruntime, grid_sample graph, fp16",
+    "onnx-ensemble": "onnxruntime, grid_sample graph, fp32, self-ensemble (four mirrored views)",
 }
 """Backend name -> what runs the network."""
+TRAINED_ONLY = ("onnx-ensemble",)
+"""Backends that run trained weights only: the self-ensemble
+(:mod:`spk2img.runtime.self_ensemble`) is four calls of the ``onnx`` row's graph, a quality
+option whose time random weights would only repeat."""
 
 
 @dataclass(frozen=True)
@@ -105,6 +110,7 @@ class NetRow:
             block_reuse=False,
             warm_up=False,  # the bench's own warm-up calls are timed apart
             memory_arena=True,  # as spk2img.Reconstructor (and the CLI) runs it
+            self_ensemble=self.backend == "onnx-ensemble",
         )
         score = network_scorer(network.predict)
         return lambda spikes: score(spikes, None)

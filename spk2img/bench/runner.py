@@ -21,7 +21,7 @@ from spk2img.model.config import MEMBERS
 from . import artifacts, gpu
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
 from .natural import NATURAL_SIZE, NaturalSet, natural_set
-from .rows import BACKENDS, NetRow, Row, TfiRow, TfpRow, row_to_json
+from .rows import BACKENDS, TRAINED_ONLY, NetRow, Row, TfiRow, TfpRow, row_to_json
 from .scores import best_tfp_window, max_abs_error, quality
 from .service_load import service_benchmark
 from .streaming import stream_benchmark, tiers_benchmark
@@ -54,7 +54,7 @@ class Scale:
     """Frames of the stream of the streaming benchmark."""
     natural_size: tuple[int, int] = NATURAL_SIZE
     """Frame size (height, width) of the natural validation (with ``--data``)."""
-    member_backends: tuple[str, ...] = tuple(BACKENDS)
+    member_backends: tuple[str, ...] = tuple(b for b in BACKENDS if b not in TRAINED_ONLY)
     """Backends the random members run on."""
     trained_backends: tuple[str, ...] = tuple(BACKENDS)
     """Backends the trained weights (the shipped model, ``--checkpoint``) run on."""
@@ -81,7 +81,7 @@ QUICK = Scale(
     # int8 weights: the export tests' own work, tests/test_export.py): the random member on
     # torch only, the shipped graph as it is and its fp16 variant (a fraction of a second)
     member_backends=("torch",),
-    trained_backends=("torch", "onnx", "onnx-fp16"),
+    trained_backends=("torch", "onnx", "onnx-fp16", "onnx-ensemble"),
 )
 
 

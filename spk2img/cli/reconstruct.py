@@ -100,6 +100,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "default, with a stride that is a multiple of the block stride, each block is encoded "
         "once)",
     )
+    p.add_argument(
+        "--self-ensemble",
+        action="store_true",
+        help="for --method net: also run the network on the stream's three mirror images and "
+        "average the four images (four times the time; docs/real_video.md has what it gains)",
+    )
     p.add_argument("--url", help="send the work to a running service, e.g. http://127.0.0.1:8000")
     p.add_argument(
         "--png-dir", type=Path, help="also save each frame as a PNG (gamma 1/2.2), as it is done"
@@ -177,7 +183,7 @@ def _keep_frames(args: argparse.Namespace, source, store: FrameStore, owed: list
 def _run_record(args: argparse.Namespace, spikes) -> dict:
     """What decides a run's frames, for ``--resume`` to check it continues the same run."""
     names = ("height", "width", "centers", "stride", "method", "window", "quality", "binning")
-    names += ("model", "backend", "checkpoint", "url")
+    names += ("model", "backend", "checkpoint", "self_ensemble", "url")
     record = {name: getattr(args, name) for name in names}
     record = {k: str(v) if isinstance(v, Path) else v for k, v in record.items()}
     return {"input": str(Path(args.input).resolve()), "frames": len(spikes), **record}
@@ -198,6 +204,7 @@ def _local_source(args: argparse.Namespace, spikes: api.Spikes) -> Iterator[Loca
         device=args.device or "cpu",
         batch=args.batch,
         binning=args.binning,
+        self_ensemble=args.self_ensemble,
     )
     if recon.device_note:
         say(args, recon.device_note)
@@ -290,9 +297,10 @@ def compute_note(recon) -> str:
 
 def _remote_source(args: argparse.Namespace, spikes: api.Spikes):
     """The service at ``args.url`` (:func:`spk2img.clients.remote.remote_frames`)."""
-    if args.model or args.checkpoint or args.backend != "onnx" or args.device:
+    if args.model or args.checkpoint or args.backend != "onnx" or args.device or args.self_ensemble:
         raise InputError(
-            "--url runs the service's own model: drop --model/--checkpoint/--backend/--device"
+            "--url runs the service's own model: drop --model/--checkpoint/--backend/--device/"
+            "--self-ensemble"
         )
     from spk2img.clients.remote import remote_frames  # the client extra
 

@@ -64,6 +64,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         threads=settings.intra_op_threads,
         block_reuse=settings.block_reuse,
         batch=settings.batch,
+        self_ensemble=settings.self_ensemble,
         warm_up=False,  # in the pool, after start-up: /readyz says when it is done
     )
     map_large_allocations_apart()  # freed buffers go back to the system (runtime.allocator)

@@ -41,6 +41,11 @@ onnxruntime 1.32 (CPU, no arena) at 11.4 KiB (250x400), 12.7 KiB (125x200) and 1
 per pixel, whole graph or block encoder and head; rounded up. Thin frames pay for their padding:
 one row of 20,000 pixels peaked at 36.7 KiB a pixel (9.2 KiB a padded pixel), one column at
 43.7, two rows at 19.3 (tests/test_service_memory.py measures thin, square and wide)."""
+SELF_ENSEMBLE_BYTES_PER_PIXEL = 8 * 2**10
+"""What a self-ensemble (``self_ensemble``) holds beyond one model call, per padded pixel: the
+block codes of its three more views (378 B a pixel a block for the shipped ``default`` and
+``real``, 180 for ``tiny``, 48 for ``cpu``; at most six blocks held: 6.6 KiB) and the four
+views' images; rounded up."""
 WINDOW_BYTES_PER_PIXEL = 16
 """Per pixel and frame of the window: the spikes (uint8) and their float32 copy, with slack."""
 JOB_BYTES = 16 * 2**20
@@ -65,7 +70,8 @@ def job_memory(
     query: ReconstructQuery, settings: ServiceSettings, response_bytes: int, geometry: Geometry
 ) -> int:
     """An upper estimate of the memory one request may use: the model's activations (``net``:
-    :data:`NET_BYTES_PER_PIXEL` per padded pixel and window of a call), the window (``net``: the
+    :data:`NET_BYTES_PER_PIXEL` per padded pixel and window of a call, and
+    :data:`SELF_ENSEMBLE_BYTES_PER_PIXEL` more for a self-ensemble), the window (``net``: the
     served network's ``geometry``), the upload read ahead (``read_ahead_bytes``), and the
     records waiting for the client (``response_bytes``, at most ``response_buffer_bytes``)."""
     pixels = query.height * query.width
@@ -75,6 +81,8 @@ def job_memory(
     if model:
         padded_height, padded_width = geometry.padded_size(query.height, query.width)
         memory += padded_height * padded_width * NET_BYTES_PER_PIXEL * settings.batch
+        if settings.self_ensemble:
+            memory += padded_height * padded_width * SELF_ENSEMBLE_BYTES_PER_PIXEL * settings.batch
     return memory + min(response_bytes, settings.response_buffer_bytes)
 
 

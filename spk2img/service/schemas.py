@@ -111,6 +111,10 @@ class ModelInfo(BaseModel):
     provider: str = Field(
         description="the onnxruntime execution provider in use, e.g. CUDAExecutionProvider"
     )
+    self_ensemble: bool = Field(
+        description="whether each image is the mean of the model on the stream and its three "
+        "mirror images (the service's self_ensemble setting)"
+    )
 
 
 class ModelsAnswer(BaseModel):

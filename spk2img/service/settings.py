@@ -81,6 +81,12 @@ class ServiceSettings(BaseSettings):
         description="encode each 13-frame block once when centres share blocks (stride a "
         "multiple of 7), with the encoder and head graphs beside the model",
     )
+    self_ensemble: bool = Field(
+        False,
+        description="run the model on each stream and its three mirror images and average "
+        "the four images mirrored back: four times the time for a better image "
+        "(docs/real_video.md)",
+    )
     upload_read_timeout_seconds: float = Field(
         10.0,
         gt=0,

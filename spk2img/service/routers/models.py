@@ -6,6 +6,7 @@ from fastapi import APIRouter
 
 from spk2img.runtime.block_codec import block_graph_paths
 from spk2img.runtime.methods import METHODS
+from spk2img.runtime.self_ensemble import SelfEnsemblePredictor
 
 from ..schemas import ErrorDetail, ModelInfo, ModelsAnswer
 from ..state import ServedNetwork
@@ -28,5 +29,6 @@ def list_models(network: ServedNetwork) -> ModelsAnswer:
         block_graphs=[path.name for path in parts],
         device=model.device,
         provider=model.provider,
+        self_ensemble=isinstance(model, SelfEnsemblePredictor),
     )
     return ModelsAnswer(models=[info], methods=list(METHODS))
