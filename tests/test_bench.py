@@ -84,6 +84,9 @@ def test_quick_run_has_every_row_and_finite_numbers(quick_run):
     assert shipped["onnx-fp16"]["max_abs_error"] < 0.05
     # the self-ensemble moves the image (the mean of four mirrored views), by a fraction
     assert 1e-4 < shipped["onnx-ensemble"]["max_abs_error"] < 0.5
+    assert shipped["onnx-ensemble"]["macs"] == {
+        size: 4 * macs for size, macs in shipped["onnx"]["macs"].items()
+    }
     assert _finite(*results["matmul_gflops"].values())
     levels = results["service"]["levels"]
     assert [level["clients"] for level in levels] == [1, 4]

@@ -14,6 +14,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from spk2img.runtime.self_ensemble import MIRRORS
 from spk2img.sim.simulator import CENTER_FRAME, FILM_FRAMES
 
 Reconstruct = Callable[[np.ndarray], np.ndarray]
@@ -29,6 +30,9 @@ BACKENDS = {
     "onnx-ensemble": "onnxruntime, grid_sample graph, fp32, self-ensemble (four mirrored views)",
 }
 """Backend name -> what runs the network."""
+CALLS_PER_FRAME = {"onnx-ensemble": len(MIRRORS)}
+"""Network calls a frame takes on a backend where it is not one: its MACs are that many times
+the network's."""
 TRAINED_ONLY = ("onnx-ensemble",)
 """Backends that run trained weights only: the self-ensemble
 (:mod:`spk2img.runtime.self_ensemble`) is four calls of the ``onnx`` row's graph, a quality

@@ -21,7 +21,7 @@ from spk2img.model.config import MEMBERS
 from . import artifacts, gpu
 from .cases import BENCH_SEED, SCENE_CLASSES, BenchSet, benchmark_set
 from .natural import NATURAL_SIZE, NaturalSet, natural_set
-from .rows import BACKENDS, TRAINED_ONLY, NetRow, Row, TfiRow, TfpRow, row_to_json
+from .rows import BACKENDS, CALLS_PER_FRAME, TRAINED_ONLY, NetRow, Row, TfiRow, TfpRow, row_to_json
 from .scores import best_tfp_window, max_abs_error, quality
 from .service_load import service_benchmark
 from .streaming import stream_benchmark, tiers_benchmark
@@ -166,7 +166,10 @@ def run_benchmark(options: BenchOptions, log: Log) -> dict:
         sizes = {"reference": REFERENCE_SIZE, "timed": (scale.height, scale.width)}
         costs = {w.name: artifacts.cost(w, sizes) for w in plan.weights}
         for entry in entries:
-            entry.update(costs.get(entry["weights"], {"params": 0, "macs": None}))
+            cost = costs.get(entry["weights"], {"params": 0, "macs": None})
+            calls = CALLS_PER_FRAME.get(entry["backend"], 1)
+            macs = cost["macs"] and {size: calls * n for size, n in cost["macs"].items()}
+            entry.update(params=cost["params"], macs=macs)
         service = (
             load_service(options, plan.items, entries, cases, log) if options.service else None
         )

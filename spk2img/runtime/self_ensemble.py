@@ -42,6 +42,8 @@ class SelfEnsemblePredictor:
         return mean_of_views([self.predict(mirror(windows, axes)) for axes in MIRRORS])
 
     def __getattr__(self, name: str):
+        if name == "predict":  # not set yet (a copy being made): no recursion
+            raise AttributeError(name)
         return getattr(self.predict, name)
 
 
