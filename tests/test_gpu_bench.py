@@ -81,8 +81,8 @@ def test_the_gpu_job_runs_on_the_cpu_provider(tmp_path):
         "cases": str(cases),
         "spikes": str(tmp_path / "stream.npy"),
     }
-    for batch in (3, 0):
-        result = measure_gpu({**spec, "batch": batch})
+    for batch, self_ensemble in ((3, False), (1, True), (0, False)):
+        result = measure_gpu({**spec, "batch": batch, "self_ensemble": self_ensemble})
         assert result["provider"] == "CPUExecutionProvider" and result["ms_per_frame"] > 0
 
 

@@ -37,6 +37,9 @@ def test_the_self_ensemble_is_mirror_equivariant_and_the_network_alone_is_not(sc
     plain, averaged = network(window), ensemble(window)
     assert ensemble.geometry == network.geometry  # the wrapped predictor's attributes
     assert np.abs(averaged - plain).max() > 1e-3  # it is not the network alone
+    # the four views as one batch (as on a GPU) give the four calls' image
+    batched = SelfEnsemblePredictor(network, batch_views=True)
+    np.testing.assert_allclose(batched(window), averaged, atol=1e-6)
     for axes in MIRRORS[1:]:
         mirrored = mirror(window, axes)
         np.testing.assert_allclose(ensemble(mirrored), mirror(averaged, axes), atol=2e-6)
@@ -48,20 +51,28 @@ def test_the_self_ensemble_is_mirror_equivariant_and_the_network_alone_is_not(sc
     height=st.integers(1, 9),
     width=st.integers(1, 9),
     seed=st.integers(0, 2**16),
+    batch_views=st.booleans(),
 )
 @settings(max_examples=40, deadline=None)
-def test_the_mean_of_views_is_equivariant_for_any_predictor(batch, height, width, seed):
-    """A predictor that weighs every pixel by its place (no mirror symmetry of its own)."""
+def test_the_mean_of_views_is_equivariant_for_any_predictor(
+    batch, height, width, seed, batch_views
+):
+    """A predictor that weighs every pixel by its place (no mirror symmetry of its own), called
+    once a view or once with all four views as one batch."""
     rng = np.random.default_rng(seed)
     weights = rng.random((height, width)).astype(np.float32)
+    calls: list[int] = []
 
     def weigh(windows: np.ndarray) -> np.ndarray:
+        calls.append(len(windows))
         return windows.mean(axis=1, dtype=np.float32) * weights
 
-    ensemble = SelfEnsemblePredictor(weigh)
+    ensemble = SelfEnsemblePredictor(weigh, batch_views)
     windows = (rng.random((batch, 5, height, width)) < 0.4).astype(np.float32)
     expected = np.mean([mirror(weigh(mirror(windows, a)), a) for a in MIRRORS], axis=0)
+    calls.clear()
     np.testing.assert_allclose(ensemble(windows), expected, atol=1e-6)
+    assert calls == ([4 * batch] if batch_views else [batch] * 4)
     for axes in MIRRORS:
         np.testing.assert_allclose(
             ensemble(mirror(windows, axes)), mirror(ensemble(windows), axes), atol=1e-6

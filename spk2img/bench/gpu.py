@@ -1,6 +1,7 @@
 """The GPU rows of the benchmark: the shipped and ``paper`` networks on onnxruntime's CUDA (or
-TensorRT) provider, fp32 and fp16, one-shot (one and :data:`BATCH` centres per call) and
-streamed with block reuse, and the service's frames/s with :data:`SERVICE_CLIENTS` clients.
+TensorRT) provider, fp32 and fp16, one-shot (one and :data:`BATCH` centres per call, and the
+self-ensemble's four mirrored views of one centre in one call) and streamed with block reuse,
+and the service's frames/s with :data:`SERVICE_CLIENTS` clients.
 
 They run only where a CUDA provider starts (:func:`gpu_device`); elsewhere the report lists the
 same rows as not yet measured, never with a figure. Each row runs in a fresh worker process
@@ -23,7 +24,9 @@ WEIGHTS = ("shipped", "paper")
 PRECISIONS = ("fp32", "fp16")
 BATCH = 8
 """Centres per call of the batched one-shot rows (the one-shot graph's batch axis is dynamic)."""
-MODES = {"one-shot": 1, f"one-shot, {BATCH} per call": BATCH, "streamed": 0}
+SELF_ENSEMBLE = "one-shot, self-ensemble"
+"""The mode of the rows that run one centre's four mirrored views as one call."""
+MODES = {"one-shot": 1, f"one-shot, {BATCH} per call": BATCH, SELF_ENSEMBLE: 1, "streamed": 0}
 """Row mode -> centres per one-shot call (0: streamed, each 13-frame block encoded once)."""
 SERVICE_CLIENTS = 4
 NO_GPU = "not yet measured (no GPU on the machine that ran this bench)"
@@ -117,6 +120,7 @@ def gpu_benchmark(
             "model": str(path),
             "device": device,
             "batch": row["batch"],
+            "self_ensemble": row["mode"] == SELF_ENSEMBLE,
             "threads": [threads],
             "repeats": repeats,
             "cases": str(cases_dir),

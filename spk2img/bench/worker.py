@@ -17,10 +17,12 @@
   ``stride``-th centre (null: the model's block stride), each window whole or each block
   encoded once (:mod:`spk2img.runtime.block_stream`), after one untimed warm-up call; the wall
   seconds, and the frames saved to ``PATH``.
-- ``{"job": "gpu", "model": ONNX, "device": "cuda", "batch": 8, "threads": [1], "repeats": 5,
-  "cases": DIR, "spikes": NPY}``: on a GPU device (:mod:`spk2img.bench.gpu`), ``batch``
-  windows of the benchmark set per call (after two untimed calls), or with ``batch`` 0 the
-  stream streamed with block reuse: the median ms per frame and the provider it ran on.
+- ``{"job": "gpu", "model": ONNX, "device": "cuda", "batch": 8, "self_ensemble": false,
+  "threads": [1], "repeats": 5, "cases": DIR, "spikes": NPY}``: on a GPU device
+  (:mod:`spk2img.bench.gpu`), ``batch`` windows of the benchmark set per call (after two
+  untimed calls; with ``self_ensemble``, each with its three mirror images in the same call),
+  or with ``batch`` 0 the stream streamed with block reuse: the median ms per frame and the
+  provider it ran on.
 - ``{"job": "tiers", "model": ONNX, "threads": [1], "cases": DIR, "outputs": DIR}``: each
   ``quality`` tier (:mod:`spk2img.runtime.adaptive`) on every window of the benchmark set, after
   one warm-up call: the seconds of each window, the share of pixels the balanced tier ran the
@@ -138,7 +140,12 @@ def measure_gpu(spec: dict) -> dict:
 
     (threads,) = spec["threads"]
     network = load_network(
-        spec["model"], device=spec["device"], threads=threads, block_reuse=False, warm_up=False
+        spec["model"],
+        device=spec["device"],
+        threads=threads,
+        block_reuse=False,
+        warm_up=False,
+        self_ensemble=spec["self_ensemble"],
     )
     model = network.predict
     where = {"device": model.device, "provider": model.provider}

@@ -4,7 +4,10 @@ Each view mirrors every spike frame left-right, up-down or both; the network's i
 is mirrored back, and the four images are averaged. The average is equivariant to those mirrors
 (mirroring the stream mirrors the image, to float rounding), costs four runs of the network,
 and lifts the shipped ``default`` on the real-video validation (docs/real_video.md). With
-block reuse each block is encoded once per view, so streams keep their reuse.
+block reuse each block is encoded once per view, so streams keep their reuse. On a GPU the four
+views of a call go to the network as one batch (four times the batch's memory, one launch of
+each kernel instead of four); on the CPU they run one after another, so the peak memory stays
+that of one call.
 """
 
 from __future__ import annotations
@@ -33,13 +36,20 @@ def mean_of_views(images: Sequence[np.ndarray]) -> np.ndarray:
 
 class SelfEnsemblePredictor:
     """A window predictor (``(B, F, H, W)`` 0/1 -> ``(B, H, W)``) run on the four views of its
-    windows; its other attributes (``geometry``, ``device`` …) are the wrapped predictor's."""
+    windows: one call of ``4B`` windows when ``batch_views``, else four calls of ``B``; its
+    other attributes (``geometry``, ``device`` …) are the wrapped predictor's."""
 
-    def __init__(self, predict: Predictor):
+    def __init__(self, predict: Predictor, batch_views: bool = False):
         self.predict = predict
+        self.batch_views = batch_views
 
     def __call__(self, windows: np.ndarray) -> np.ndarray:
-        return mean_of_views([self.predict(mirror(windows, axes)) for axes in MIRRORS])
+        views = [mirror(windows, axes) for axes in MIRRORS]
+        if self.batch_views:
+            images = np.split(self.predict(np.concatenate(views)), len(MIRRORS))
+        else:
+            images = [self.predict(view) for view in views]
+        return mean_of_views(images)
 
     def __getattr__(self, name: str):
         if name == "predict":  # not set yet (a copy being made): no recursion
