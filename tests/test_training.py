@@ -453,10 +453,11 @@ def test_a_stop_request_takes_the_first_signal_and_a_later_second_stops_at_once(
     assert signal.getsignal(signal.SIGTERM) is previous
 
 
-def test_ctrl_c_stops_a_run_after_its_step_and_saves_it(tmp_path):
-    """Ctrl-C (SIGINT to the whole process group, the worker too) ends a run at the step it
-    reached with that step in ``last.pt``, between the checkpoints it would have written;
-    the same command continues from there."""
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
+def test_ctrl_c_stops_a_run_after_its_step_and_saves_it(tmp_path, stop):
+    """Ctrl-C or ``timeout``'s SIGTERM (to the whole process group, as both send it) ends a run
+    with a data worker at the step it reached with that step in ``last.pt``, between the
+    checkpoints it would have written; the same command continues from there."""
     run = tmp_path / "run"
     flags = "--member tiny --patch 16 --batch-size 2 --val-per-class 1 --log-every 1"
     cmd = [sys.executable, "-m", "spk2img", "train", *flags.split(), "--run-dir", str(run)]
@@ -473,18 +474,18 @@ def test_ctrl_c_stops_a_run_after_its_step_and_saves_it(tmp_path):
             if (run / "metrics.jsonl").is_file() and len(_records(run, "train")) >= 3:
                 break
             time.sleep(0.2)
-        os.killpg(proc.pid, signal.SIGINT)
+        os.killpg(proc.pid, stop)
         _, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.returncode == 130, err[-2000:]
+    assert proc.returncode == 128 + stop, err[-2000:]
     (stopped,) = _records(run, "stopped")
     step = stopped["step"]
-    assert stopped["signal"] == "SIGINT" and 3 <= step < 100000
+    assert stopped["signal"] == stop.name and 3 <= step < 100000
     assert load_checkpoint(run / "last.pt")["step"] == step
     assert _records(run, "train")[-1]["step"] == step and not _records(run, "summary")
-    assert f"stopped at step {step} of 100000 (SIGINT)" in err and "Traceback" not in err
+    assert f"stopped at step {step} of 100000 ({stop.name})" in err and "Traceback" not in err
     more = ["--steps", str(step + 2), "--val-every", "100000", "--workers", "0"]
     assert subprocess.run([*cmd, *more, "--no-progress"], timeout=240).returncode == 0
     assert [r["step"] for r in _records(run, "run")] == [0, step]

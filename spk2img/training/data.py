@@ -11,6 +11,7 @@ processes may make them in any order.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
 import time
 import warnings
@@ -197,9 +198,13 @@ _WORKER_MAKER: SampleMaker | None = None
 def _init_worker(maker: SampleMaker) -> None:
     global _WORKER_MAKER
     _WORKER_MAKER = maker
-    # Ctrl-C reaches every process of the terminal's group: the training process decides
-    # when to stop (spk2img.training.stop); a worker it killed would never return its batch
+    # Ctrl-C, `timeout` and schedulers signal every process of the command's group: the
+    # training process decides when to stop (spk2img.training.stop). A worker killed by such a
+    # signal could hold the pool's queue lock and never return its batch, and the pool's
+    # replacement worker would wait on that lock for ever: so the workers leave the group
+    # (the pool still ends them by pid) and ignore Ctrl-C before they do
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.setpgrp()
 
 
 def _worker_batch(make: str, step: int, size: int):
