@@ -89,6 +89,31 @@ def test_an_unknown_loss_is_refused(tmp_path, capsys):
     assert "--loss l2: use one of l1, psnr" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    "flag, value, says",
+    [
+        ("--steps", "-1", "--steps -1: must be >= 1"),
+        ("--warmup-steps", "-5", "--warmup-steps -5: must be >= 0"),
+        ("--batch-size", "0", "--batch-size 0: must be >= 1"),
+        ("--patch", "0", "--patch 0: must be >= 4"),
+        ("--workers", "-1", "--workers -1: must be >= 0"),
+        ("--val-every", "0", "--val-every 0: must be >= 1"),
+        ("--checkpoint-every", "0", "--checkpoint-every 0: must be >= 1"),
+        ("--threads", "0", "--threads 0: must be >= 1"),
+        ("--lr", "-1", "--lr -1.0: must be a positive number"),
+        ("--lr", "nan", "--lr nan: must be a positive number"),
+        ("--data-mix", "photos=nan", "bad data mix 'photos=nan'"),
+        ("--data-mix", "photos=inf", "bad data mix 'photos=inf'"),
+    ],
+)
+def test_a_flag_out_of_its_range_is_one_line_before_any_work(tmp_path, capsys, flag, value, says):
+    run = tmp_path / "run"
+    assert main(["train", "--run-dir", str(run), "--no-progress", f"{flag}={value}"]) == 2
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not run.exists()
+
+
 def test_batches_are_a_function_of_seed_and_step():
     a = SampleMaker(16, seed=3).batch(5, 2)
     b = SampleMaker(16, seed=3).batch(5, 2)

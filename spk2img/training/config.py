@@ -3,6 +3,7 @@ with its help, default and choices (pure Python: the command line reads it witho
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,6 +23,21 @@ def check_final_term(final: str) -> None:
     """``ValueError`` unless ``final`` is one of :data:`FINAL_TERMS` (``spk2img train --loss``)."""
     if final not in FINAL_TERMS:
         raise ValueError(f"--loss {final}: use one of {', '.join(FINAL_TERMS)}")
+
+
+AT_LEAST = {
+    "steps": 1,
+    "batch_size": 1,
+    "patch": 4,
+    "warmup_steps": 0,
+    "workers": 0,
+    "val_every": 1,
+    "val_per_class": 1,
+    "checkpoint_every": 1,
+    "threads": 1,
+    "log_every": 1,
+}
+"""The least value of each integer flag of :class:`TrainConfig`."""
 
 
 def check_share(flag_name: str, share: float) -> None:
@@ -140,6 +156,13 @@ class TrainConfig:
             raise ValueError(f"--synthesis {self.synthesis}: choose one of {', '.join(SYNTHESES)}")
         if self.precision not in PRECISIONS:
             raise ValueError(f"--precision {self.precision}: choose one of {', '.join(PRECISIONS)}")
+        for name, least in AT_LEAST.items():
+            if getattr(self, name) < least:
+                raise ValueError(
+                    f"--{name.replace('_', '-')} {getattr(self, name)}: must be >= {least}"
+                )
+        if not (math.isfinite(self.lr) and self.lr > 0):
+            raise ValueError(f"--lr {self.lr}: must be a positive number")
         check_share("ideal_share", self.ideal_share)
         check_share("display_share", self.display_share)
         check_final_term(self.loss)

@@ -10,6 +10,7 @@ processes may make them in any order.
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
 import signal
@@ -48,7 +49,8 @@ class DataMix:
         except ValueError:
             raise ValueError(f"bad data mix {text!r}: use e.g. photos=0.5,clips=0.3") from None
         unknown = set(weights) - set(KINDS)
-        if unknown or min(weights.values(), default=0) < 0 or sum(weights.values()) <= 0:
+        values = list(weights.values())
+        if unknown or not all(0 <= v < math.inf for v in values) or sum(values) <= 0:
             raise ValueError(
                 f"bad data mix {text!r}: kinds are {', '.join(KINDS)}, weights >= 0, not all 0"
             )
