@@ -79,6 +79,45 @@ def test_nothing_to_resume_is_an_error(tmp_path, stream, capsys):
     assert "nothing to resume" in capsys.readouterr().err
 
 
+def test_a_run_that_fails_before_its_first_frame_leaves_nothing_that_blocks_the_next(
+    tmp_path, stream, capsys
+):
+    """A bad input found after the run began keeps no folder; a folder with no frames (left by
+    an older version) does not ask for --resume; a damaged run.json is named, not a traceback."""
+    out, bad = tmp_path / "o.npz", tmp_path / "complex.npy"
+    np.save(bad, np.zeros((50, 8, 8), np.complex64))
+    assert main(["reconstruct", str(bad), "--out", str(out), "--method", "tfp"]) == 2
+    assert "complex64" in capsys.readouterr().err and not partial_dir(out).exists()
+    args = ["reconstruct", str(stream), "--out", str(out), "--method", "tfp", "--centers", "50"]
+    partial_dir(out).mkdir()
+    (partial_dir(out) / frame_store.RUN_FILE).write_text("{damaged")
+    assert main([*args, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "run.json is missing or damaged" in err and "Traceback" not in err
+    assert main(args) == 0 and not partial_dir(out).exists()
+    assert np.load(out)["centers"].tolist() == [50]
+
+
+@pytest.mark.parametrize("png_dir, says", [("a_file", "a file is there"), ("/proc/x", "cannot")])
+def test_a_png_dir_that_cannot_be_made_is_refused_before_any_work(
+    tmp_path, stream, capsys, png_dir, says
+):
+    out = tmp_path / "o.npz"
+    (tmp_path / "a_file").write_text("")
+    folder = png_dir if png_dir.startswith("/") else str(tmp_path / png_dir)
+    cmd = ["reconstruct", str(stream), "--out", str(out), "--method", "tfp", "--png-dir", folder]
+    assert main(cmd) == 2
+    assert says in capsys.readouterr().err and not partial_dir(out).exists()
+
+
+@pytest.mark.parametrize("threads", ["-1", "0", "x", "100000"])
+def test_threads_outside_one_to_a_few_per_core_is_a_usage_error(tmp_path, stream, capsys, threads):
+    out = tmp_path / "o.npz"
+    with pytest.raises(SystemExit) as exc:
+        main(["reconstruct", str(stream), "--out", str(out), "--threads", threads])
+    assert exc.value.code == 2 and "give a whole number from 1 to" in capsys.readouterr().err
+
+
 def test_a_remote_run_resumes_through_the_service_too(
     tmp_path, stream, monkeypatch, capsys, service
 ):

@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+from spk2img.cli.arguments import thread_count
 from spk2img.cli.verify import parse_size
 from spk2img.errors import InputError
 
@@ -52,7 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--example-size", default="24x32", help="HxW the network is traced at (default 24x32)"
     )
-    p.add_argument("--threads", type=int, default=None, help="PyTorch threads")
+    p.add_argument("--threads", type=thread_count, default=None, help="PyTorch threads")
 
 
 def run(args: argparse.Namespace) -> int:

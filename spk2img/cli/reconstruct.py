@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -11,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img import api
+from spk2img.cli.arguments import thread_count
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.errors import InputError
 from spk2img.io.frame_size import check_frame_size
@@ -77,7 +79,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--backend", choices=("onnx", "torch"), default="onnx")
     p.add_argument("--checkpoint", type=Path, help="torch checkpoint for --backend torch")
-    p.add_argument("--threads", type=int, default=None, help="inference threads")
+    p.add_argument("--threads", type=thread_count, default=None, help="inference threads")
     p.add_argument(
         "--device",
         choices=DEVICES,
@@ -130,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
     interrupted run keeps every finished frame and ``--resume`` continues it."""
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
+    if args.png_dir:
+        _check_png_dir(args.png_dir)
     spikes = api.read_spikes(args.input, args.height, args.width)
     if isinstance(spikes, DatStream) and not args.force_size:
         check_frame_size(args.input, args.height, args.width)
@@ -153,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
             return EXIT_INTERRUPTED
         except BaseException:
             store.flush()  # what is done stays done; --resume continues from it
+            store.discard_if_empty()
             raise
         how = source.note()
     frames, centers = store.finish(*spikes.shape[1:])
@@ -305,6 +310,18 @@ def _remote_source(args: argparse.Namespace, spikes: api.Spikes):
     from spk2img.clients.remote import remote_frames  # the client extra
 
     return remote_frames(args, spikes, args.stride)
+
+
+def _check_png_dir(directory: Path) -> None:
+    """Make ``--png-dir`` (:class:`InputError` when it cannot be a folder of new files)."""
+    if directory.exists() and not directory.is_dir():
+        raise InputError(f"--png-dir {directory}: a file is there, not a folder")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--png-dir {directory}: cannot make it ({exc.strerror})") from None
+    if not os.access(directory, os.W_OK):
+        raise InputError(f"--png-dir {directory}: this user cannot write there")
 
 
 def save_png(directory: Path, center: int, image: np.ndarray) -> None:

@@ -8,6 +8,7 @@ import json
 import sys
 from pathlib import Path
 
+from spk2img.cli.arguments import thread_count
 from spk2img.errors import InputError
 from spk2img.runtime.onnx_backend import DEVICES
 
@@ -53,7 +54,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--sizes", help="comma-separated HxW scene sizes instead of the default list, e.g. 17x23"
     )
     p.add_argument("--atol", type=float, default=None, help="max abs error allowed (1e-4)")
-    p.add_argument("--threads", type=int, default=None, help="PyTorch threads for the reference")
+    p.add_argument(
+        "--threads", type=thread_count, default=None, help="PyTorch threads for the reference"
+    )
     p.add_argument(
         "--fp16",
         action="store_true",

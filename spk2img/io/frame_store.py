@@ -58,13 +58,21 @@ class FrameStore:
         self._centers: list[int] = []
         self._held_since: float | None = None
         self._chunks = 0
+        if self.dir.is_dir() and not resume and not self._chunk_paths():
+            shutil.rmtree(self.dir)  # a run that failed before its first frame: nothing to keep
         if self.dir.is_dir():
             if not resume:
                 raise InputError(
                     f"{self.dir} holds the frames of an interrupted run: add --resume to "
                     "continue it, or delete the folder to start again"
                 )
-            kept = json.loads((self.dir / RUN_FILE).read_text())
+            try:
+                kept = json.loads((self.dir / RUN_FILE).read_text())
+            except (OSError, ValueError):
+                raise InputError(
+                    f"{self.dir / RUN_FILE} is missing or damaged, so the kept frames cannot be "
+                    "matched to their arguments: delete the folder to start again"
+                ) from None
             changed = sorted(k for k in {*kept, *run} if kept.get(k) != run.get(k))
             if changed:
                 raise InputError(
@@ -79,6 +87,12 @@ class FrameStore:
             (self.dir / RUN_FILE).write_text(json.dumps(run, indent=1, sort_keys=True))
         self.done = {int(k) for _, centers in self._read_chunks() for k in centers}
         """Centres already kept (by an earlier, interrupted run)."""
+
+    def discard_if_empty(self) -> None:
+        """Remove :func:`partial_dir` when it keeps no frame (a run that failed before its
+        first one leaves nothing behind)."""
+        if not self._frames and not self._chunk_paths():
+            shutil.rmtree(self.dir, ignore_errors=True)
 
     def _chunk_paths(self) -> list[Path]:
         return sorted(self.dir.glob("chunk_*.npz"))
