@@ -34,6 +34,17 @@ SUBCOMMANDS = [
 ]
 
 
+PATH_ERRORS = (
+    FileNotFoundError,
+    FileExistsError,
+    IsADirectoryError,
+    NotADirectoryError,
+    PermissionError,
+)
+"""OS errors that a path the user gave causes (a missing input, a file where a folder must go):
+one line and exit 2, like an :class:`InputError`."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="spk2img", description="Spike-camera streams to images (Spk2ImgNet, TFP, TFI)."
@@ -63,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
         return code
     except MissingExtra as exc:
         return _fail(args, str(exc), EXIT_MISSING_EXTRA)
-    except (InputError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+    except (InputError, *PATH_ERRORS) as exc:
         return _fail(args, str(exc), 2)
     except ModuleNotFoundError as exc:
         extra = extra_for_module(exc.name)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import os
 import sys
 import zipfile
 from dataclasses import asdict
@@ -27,6 +28,9 @@ SENSORS = {
     "fitted": lambda: load_preset(FITTED_PRESET),
 }
 CHUNK_FRAMES = 32
+MAX_SIDE = 4096
+"""The largest ``--height`` or ``--width`` (pixels): ten times a spike camera's side, and a
+chunk of :data:`CHUNK_FRAMES` frames of it in a few GiB."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -76,20 +80,28 @@ def run(args: argparse.Namespace) -> int:
         "sensor": {"preset": args.sensor, **asdict(sensor)},
     }
     shape = (args.frames, args.height, args.width)
+    # written under temporary names and renamed at the end: a stopped run leaves no truncated
+    # stream that would read as a shorter one
+    tmp_dat, tmp_gt = (path.with_name(path.name + ".partial") for path in (args.out, gt_path))
     try:
         with (
-            args.out.open("wb") as dat,
-            zipfile.ZipFile(gt_path, "w", allowZip64=True) as npz,
+            tmp_dat.open("wb") as dat,
+            zipfile.ZipFile(tmp_gt, "w", allowZip64=True) as npz,
             progress_bar(args, total=args.frames) as bar,
         ):
             npz.writestr("meta.npy", _npy_bytes(np.array(json.dumps(meta))))
             with npz.open("gt.npy", "w", force_zip64=True) as gt:  # streamed: no (T, H, W) array
                 _write_stream(dat, gt, simulator, shape, bar)
+        os.replace(tmp_gt, gt_path)
+        os.replace(tmp_dat, args.out)
     except OSError as exc:
         print(
             f"spk2img simulate: error: cannot write {args.out} / {gt_path}: {exc}", file=sys.stderr
         )
         return 1
+    finally:
+        tmp_dat.unlink(missing_ok=True)
+        tmp_gt.unlink(missing_ok=True)
     say(
         args,
         f"wrote {args.frames} frames of {args.height}x{args.width} to {args.out} and {gt_path}",
@@ -113,8 +125,10 @@ def _check(args: argparse.Namespace) -> str | None:
     """What is wrong with the arguments, in one line, or None."""
     if args.frames < 1:
         return f"--frames must be >= 1, got {args.frames}"
-    if args.height < 1 or args.width < 1:
-        return f"--height and --width must be >= 1, got {args.height}x{args.width}"
+    if not (1 <= args.height <= MAX_SIDE and 1 <= args.width <= MAX_SIDE):
+        return f"--height and --width must be from 1 to {MAX_SIDE}, got {args.height}x{args.width}"
+    if args.seed < 0:
+        return f"--seed must be >= 0, got {args.seed}"
     if args.out.suffix.lower() != ".dat":
         return f"OUT must name a .dat file, got {args.out}"
     if not args.out.parent.is_dir():

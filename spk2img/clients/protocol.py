@@ -16,6 +16,7 @@ import h11
 import numpy as np
 
 from spk2img import __version__
+from spk2img.errors import InputError
 from spk2img.protocol.framing import (
     MEDIA_TYPE,
     DoneRecord,
@@ -55,7 +56,7 @@ class ServiceURL:
     def parse(cls, base_url: str) -> ServiceURL:
         parts = urlsplit(base_url)
         if parts.scheme != "http" or not parts.hostname:
-            raise ValueError(f"the service URL must look like http://HOST:PORT, got {base_url!r}")
+            raise InputError(f"the service URL must look like http://HOST:PORT, got {base_url!r}")
         return cls(parts.hostname, parts.port or 80, parts.netloc, parts.path.rstrip("/"))
 
     def __str__(self) -> str:

@@ -44,6 +44,11 @@ def net_window(window_frames: int, binning: int = 1) -> int:
     return check_window(window_frames) * check_binning(binning) | 1
 
 
+MAX_CENTER = 2**62
+"""The largest centre (a frame index) that can be asked for: one beyond 64-bit indices is
+refused as such, not overflowed."""
+
+
 def parse_centers(text: str) -> list[int]:
     """Parse ``"40,80,120"`` into ``[40, 80, 120]`` (raises :class:`WindowError`)."""
     try:
@@ -52,6 +57,9 @@ def parse_centers(text: str) -> list[int]:
         raise WindowError(f"centers must be comma-separated integers, got {text!r}") from exc
     if not centers:
         raise WindowError("centers must name at least one frame")
+    beyond = [c for c in centers if abs(c) > MAX_CENTER]
+    if beyond:
+        raise WindowError(f"centre {beyond[0]} is beyond any stream (at most {MAX_CENTER})")
     return centers
 
 

@@ -40,6 +40,8 @@ HOT_MIN_EXCESS = 0.05
 """Spikes/frame above the neighbours' median below which no pixel counts as hot."""
 HOT_SIGMAS = 8.0
 MIN_INTERVALS = 3
+MIN_USABLE_PIXELS = 16
+"""Pixels with :data:`MIN_INTERVALS` intervals needed for a fit (its percentiles and medians)."""
 DARK_PERCENTILE = 0.5
 
 
@@ -88,6 +90,11 @@ def fit_sensor(spikes: np.ndarray) -> tuple[SensorConfig, dict]:
 
     intervals, mean_interval, cv2 = interval_statistics(spikes)
     usable = (intervals >= MIN_INTERVALS) & ~hot & np.isfinite(cv2)
+    if usable.sum() < MIN_USABLE_PIXELS:
+        raise ValueError(
+            f"only {int(usable.sum())} pixels (hot ones aside) fire at least {MIN_INTERVALS} "
+            f"times, and a fit needs {MIN_USABLE_PIXELS}: record longer or with more light"
+        )
     quantisation = (1 / 6) / mean_interval**2  # read-out at frame ends: uniform +-1/2 frame
     excess_cv2 = (cv2 - quantisation)[usable]
     shot_cv2 = float(np.mean(np.clip(excess_cv2, *np.percentile(excess_cv2, [1, 99]))))
