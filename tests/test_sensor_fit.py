@@ -72,10 +72,16 @@ def test_fit_sensor_rejects_bad_input(tmp_path, capsys):
     np.save(short, np.zeros((5, 8, 8), np.uint8))
     assert main(["fit-sensor", str(short)]) == 2
     assert main(["fit-sensor", str(tmp_path / "missing.npz")]) == 2
+    dark = tmp_path / "dark.npy"  # long enough, but one spike in all: nothing to fit
+    spikes = np.zeros((50, 8, 8), np.uint8)
+    spikes[10, 3, 3] = 1
+    np.save(dark, spikes)
+    assert main(["fit-sensor", str(dark)]) == 2
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(ValueError, match="not a sensor preset"):
         load_preset(tmp_path / "bad.json")
-    assert len(capsys.readouterr().err.strip().splitlines()) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and "only 0 pixels (hot ones aside) fire" in err[-1]
 
 
 @pytest.mark.skipif(not REAL_CAPTURE.is_file(), reason="the real capture is not beside the repo")

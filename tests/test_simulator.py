@@ -305,13 +305,45 @@ def test_simulate_cli_writes_a_dat_that_round_trips(tmp_path):
 
 
 @pytest.mark.parametrize(
-    "extra", [["--frames", "0"], ["--height", "-2"], ["--sensor", "real", "--width", "0"]]
+    "extra",
+    [
+        ["--frames", "0"],
+        ["--height", "-2"],
+        ["--sensor", "real", "--width", "0"],
+        ["--height", "100000"],
+        ["--seed", "-1"],
+    ],
 )
 def test_simulate_cli_rejects_bad_arguments_in_one_line(tmp_path, capsys, extra):
     assert main(["simulate", str(tmp_path / "s.dat"), *extra]) != 0
     err = capsys.readouterr().err.strip()
     assert err.startswith("spk2img simulate: error:") and "\n" not in err
     assert not (tmp_path / "s.dat").exists()
+
+
+def test_a_stopped_simulate_leaves_no_shorter_stream_under_the_name_asked_for(
+    tmp_path, monkeypatch
+):
+    """Ctrl-C after the first chunk: the files of an earlier run stay as they were and no
+    partial file is left; the same command then writes the whole stream."""
+    from spk2img.cli import simulate as simulate_cli
+
+    out = tmp_path / "s.dat"
+    out.write_bytes(b"earlier")
+    chunk, chunks = simulate_cli.pack_frames, []
+
+    def stop_at_the_second_chunk(frames):
+        chunks.append(len(frames))
+        if len(chunks) == 2:
+            raise KeyboardInterrupt
+        return chunk(frames)
+
+    monkeypatch.setattr(simulate_cli, "pack_frames", stop_at_the_second_chunk)
+    args = ["simulate", str(out), "--frames", "70", "--height", "8", "--width", "8", "-q"]
+    assert main(args) == 130 and len(chunks) == 2
+    assert out.read_bytes() == b"earlier" and sorted(tmp_path.iterdir()) == [out]
+    monkeypatch.undo()
+    assert main(args) == 0 and len(out.read_bytes()) == 70 * frame_nbytes(8, 8)
 
 
 def test_simulate_cli_rejects_a_missing_directory_and_a_wrong_suffix(tmp_path, capsys):

@@ -1,0 +1,48 @@
+"""Mistakes any command can meet end in one line on stderr and exit 2, never a traceback: a
+path where a file is and a folder must go, centres beyond any stream, a malformed service URL."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spk2img.cli import main
+
+
+@pytest.fixture()
+def stream(tmp_path):
+    path = tmp_path / "s.npy"
+    np.save(path, (np.random.default_rng(2).random((60, 8, 8)) < 0.3).astype(np.uint8))
+    return path
+
+
+def _one_line(capsys, command: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"spk2img {command}: error:") and "\n" not in err, err
+    return err
+
+
+@pytest.mark.parametrize(
+    "extra, says",
+    [
+        (["--centers", str(2**70)], "is beyond any stream"),
+        (["--url", "notaurl"], "must look like http://HOST:PORT"),
+        (["--url", "ftp://host:1"], "must look like http://HOST:PORT"),
+    ],
+)
+def test_reconstruct_refuses_in_one_line(tmp_path, stream, capsys, extra, says):
+    out = tmp_path / "o.npz"
+    assert main(["reconstruct", str(stream), "--out", str(out), "--method", "tfp", *extra]) == 2
+    assert says in _one_line(capsys, "reconstruct")
+    assert not out.exists()
+
+
+def test_a_file_where_a_folder_must_go_is_one_line(tmp_path, stream, capsys):
+    (tmp_path / "afile").write_text("")
+    out = tmp_path / "afile" / "o.npz"
+    assert main(["reconstruct", str(stream), "--out", str(out), "--method", "tfp"]) == 2
+    assert "afile" in _one_line(capsys, "reconstruct")
+    data = tmp_path / "data"
+    data.mkdir()
+    assert main(["pack-data", "--data", str(data), "--out", str(tmp_path / "afile")]) == 2
+    assert "afile" in _one_line(capsys, "pack-data")
