@@ -47,6 +47,20 @@ def manifest_path(file: Path, folder: Path) -> Path:
     return folder / f"{file.name}.parts.json"
 
 
+def _copy_part(source, part: Path, limit: int, whole) -> tuple[int, str]:
+    """Copy up to ``limit`` bytes of the open ``source`` into file ``part``, :data:`CHUNK` at a
+    time (never a whole part in memory), adding them to the ``whole`` file's hash too; the
+    bytes copied and the part's SHA-256."""
+    digest, size = hashlib.sha256(), 0
+    with open(part, "wb") as sink:
+        while size < limit and (block := source.read(min(CHUNK, limit - size))):
+            sink.write(block)
+            digest.update(block)
+            whole.update(block)
+            size += len(block)
+    return size, digest.hexdigest()
+
+
 def split(file: Path, out: Path, part_bytes: int = DEFAULT_PART_MIB * MIB) -> Path:
     """Split ``file`` into parts of at most ``part_bytes`` in folder ``out``; returns the
     manifest's path (module doc)."""
@@ -55,15 +69,15 @@ def split(file: Path, out: Path, part_bytes: int = DEFAULT_PART_MIB * MIB) -> Pa
     out.mkdir(parents=True, exist_ok=True)
     parts, whole = [], hashlib.sha256()
     with open(file, "rb") as source:
-        block = source.read(part_bytes)  # an empty file is one empty part
-        while block or not parts:
-            whole.update(block)
+        while True:  # an empty file is one empty part
             part = out / f"{file.name}.part-{len(parts):03d}"
-            part.write_bytes(block)
-            parts.append(
-                {"file": part.name, "size": len(block), "sha256": hashlib.sha256(block).hexdigest()}
-            )
-            block = source.read(part_bytes)
+            size, digest = _copy_part(source, part, part_bytes, whole)
+            if size == 0 and parts:
+                part.unlink()
+                break
+            parts.append({"file": part.name, "size": size, "sha256": digest})
+            if size < part_bytes:
+                break
     manifest = {
         "name": file.name,
         "size": sum(p["size"] for p in parts),

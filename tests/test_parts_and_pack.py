@@ -9,6 +9,7 @@ import subprocess
 import sys
 import zipfile
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
+from spk2img import parts as parts_module
 from spk2img.cli import main
 from spk2img.parts import PartsError, collect, join, missing, read_manifest, split
 from spk2img.sim.sources import SourceIndex
@@ -26,12 +28,18 @@ SCRIPT = REPO / "scripts" / "receive_parts.sh"
 
 
 @settings(max_examples=30, deadline=None)
-@given(payload=st.binary(min_size=0, max_size=3000), part_bytes=st.integers(1, 700))
-def test_split_then_join_gives_the_file_back(tmp_path_factory, payload, part_bytes):
+@given(
+    payload=st.binary(min_size=0, max_size=3000),
+    part_bytes=st.integers(1, 700),
+    chunk=st.integers(1, 300),
+)
+def test_split_then_join_gives_the_file_back(tmp_path_factory, payload, part_bytes, chunk):
+    """Whatever the part size and the size of the reads that copy a part (``chunk``)."""
     folder = tmp_path_factory.mktemp("parts")
     original = folder / "blob.bin"
     original.write_bytes(payload)
-    manifest = split(original, folder / "parts", part_bytes)
+    with mock.patch.object(parts_module, "CHUNK", chunk):
+        manifest = split(original, folder / "parts", part_bytes)
     parts = read_manifest(manifest)["parts"]
     assert len(parts) == max(1, math.ceil(len(payload) / part_bytes))  # empty: one empty part
     assert all(p["size"] <= part_bytes for p in parts)
@@ -138,8 +146,9 @@ def test_the_pack_can_leave_the_held_out_sources_out_and_refuses_bad_input(
     assert not list(unpacked.rglob("kodak24_kodim08.png"))
     assert main(["pack-data", "--data", str(tmp_path / "nowhere")]) == 2
     assert main(["pack-data", "--data", str(data_dir), "--part-mib", "0"]) == 2
+    assert main(["pack-data", "--data", str(data_dir), "--part-mib", "nan"]) == 2
     err = capsys.readouterr().err
-    assert "not a folder" in err and "--part-mib 0" in err
+    assert "not a folder" in err and "--part-mib 0" in err and "--part-mib nan" in err
 
 
 def test_the_receiving_script_gathers_a_part_per_command_and_unpacks_the_last(tmp_path):

@@ -4,6 +4,7 @@ receiving 64 MiB a command (:mod:`spk2img.training.pack`; the steps there: docs/
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from spk2img.errors import InputError
@@ -39,8 +40,8 @@ def run(args: argparse.Namespace) -> int:
     for folder in args.data:
         if not Path(folder).is_dir():
             raise InputError(f"--data {folder}: not a folder")
-    if args.part_mib <= 0:
-        raise InputError(f"--part-mib {args.part_mib}: must be > 0")
+    if not 0 < args.part_mib < math.inf:
+        raise InputError(f"--part-mib {args.part_mib}: must be a number > 0")
     try:
         record = pack_training_data(args.data, args.out, args.part_mib, args.validation)
     except ValueError as exc:
