@@ -46,3 +46,23 @@ def test_a_file_where_a_folder_must_go_is_one_line(tmp_path, stream, capsys):
     data.mkdir()
     assert main(["pack-data", "--data", str(data), "--out", str(tmp_path / "afile")]) == 2
     assert "afile" in _one_line(capsys, "pack-data")
+
+
+def test_sizes_beyond_any_camera_and_files_that_are_no_graph_are_refused_first(
+    tmp_path, stream, capsys
+):
+    """Before any work: a side over 4096 (``models``, ``export``, ``verify``), a ``verify`` of
+    a file that is no ONNX graph, and a ``--json`` that cannot be written."""
+    huge = ["--height", "99999999", "--width", "9"]
+    assert main(["models", *huge]) == 2
+    assert "at most 4096" in _one_line(capsys, "models")
+    out = tmp_path / "m.onnx"
+    export = ["export", "--random-weights", "--member", "tiny", "--out", str(out)]
+    assert main([*export, "--example-size", "99999x99999"]) == 2
+    assert "at most 4096" in _one_line(capsys, "export") and not out.exists()
+    assert main(["verify", str(stream)]) == 2
+    assert "not an ONNX model" in _one_line(capsys, "verify")
+    (tmp_path / "afile").write_text("")
+    json_out = str(tmp_path / "afile" / "r.json")
+    assert main(["verify", str(stream), "--json", json_out]) == 2
+    assert "--json" in _one_line(capsys, "verify")

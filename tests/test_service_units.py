@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import socket
 import threading
 import typing
 import warnings
@@ -91,6 +92,27 @@ def test_bad_settings_are_input_errors(monkeypatch):
 def test_serve_without_the_model_file_fails_clearly(tmp_path, capsys):
     assert main(["serve", "--model", str(tmp_path / "missing.onnx")]) == 2
     assert "no model file" in capsys.readouterr().err
+
+
+def test_serve_on_a_file_that_is_no_model_or_a_busy_port_is_one_line(tmp_path, capsys):
+    """Found before the server starts: exit 2 and one line, not the server's traceback."""
+    (tmp_path / "not.onnx").write_bytes(b"not a graph")
+    assert main(["serve", "--model", str(tmp_path / "not.onnx"), "--port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "not a loadable ONNX model" in err and err.count("\n") == 1
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = str(busy.getsockname()[1])
+        assert main(["serve", "--port", port]) == 2
+        assert main(["serve", "--port", "0", "--health-port", port]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        f"spk2img serve: error: --port {port}: cannot listen on 127.0.0.1:{port} "
+        "(Address already in use)",
+        f"spk2img serve: error: --health-port {port}: cannot listen on 127.0.0.1:{port} "
+        "(Address already in use)",
+    ]
 
 
 def test_not_ready_before_the_model_is_loaded(standin_model):

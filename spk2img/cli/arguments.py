@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
+
+from spk2img.errors import InputError
 
 THREADS_PER_CORE = 4
 """The most threads a command may ask for per core available: more only slow the runtime down
@@ -30,3 +33,16 @@ def thread_count(text: str) -> int:
             "cores here; more threads only slow inference down)"
         )
     return value
+
+
+def check_output_file(path: Path, flag: str) -> None:
+    """Make the folder of output file ``path`` before any work, so that a run does not end with
+    its work lost to a path it cannot write (:class:`InputError`, naming ``flag``)."""
+    if path.is_dir():
+        raise InputError(f"{flag} {path}: a folder is there, not a file")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{flag} {path}: cannot make its folder ({exc.strerror})") from None
+    if not os.access(path.parent, os.W_OK):
+        raise InputError(f"{flag} {path}: this user cannot write in {path.parent}")

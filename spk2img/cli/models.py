@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, check_size
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, MAX_SIDE, check_size
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -21,7 +21,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_size(args.height, args.width)
+    check_size(args.height, args.width, MAX_SIDE)
     import torch
 
     from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs

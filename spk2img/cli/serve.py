@@ -9,6 +9,7 @@ value (from a flag or the environment) is one line naming the flag and the varia
 from __future__ import annotations
 
 import argparse
+import socket
 import typing
 from typing import Any
 
@@ -42,13 +43,33 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from spk2img.runtime.onnx_backend import create_session
     from spk2img.service.server import run as serve  # the serve extra (checked by cli.extras)
 
     settings = settings_from_args(args)
     if not settings.model_path.is_file():  # a --model that is no model raised already
         raise InputError(f"no model file at {settings.model_path}{DEFAULT_MODEL_HINT}")
+    # what the app's start-up would fail on, found first: one line, not a server's traceback
+    create_session(settings.model_path, threads=1, device=settings.device)
+    for flag, port in (("--port", settings.port), ("--health-port", settings.health_port)):
+        check_port_free(settings.host, port, flag)
     serve(settings)
     return 0
+
+
+def check_port_free(host: str, port: int | None, flag: str) -> None:
+    """:class:`InputError` when ``host:port`` cannot be listened on now (in use, or a host that
+    is not this machine's); None and 0 (any free port) always can."""
+    if not port:
+        return
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise InputError(
+                f"{flag} {port}: cannot listen on {host}:{port} ({exc.strerror})"
+            ) from None
 
 
 def settings_from_args(args: argparse.Namespace):

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.cli.progress import add_progress_flags, progress_bar, say
-from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, pack_frames
+from spk2img.io.spikes import DEFAULT_HEIGHT, DEFAULT_WIDTH, MAX_SIDE, pack_frames
 from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, random_scene
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.sim.simulator import SensorConfig, SpikeSimulator, ground_truth
@@ -28,9 +28,6 @@ SENSORS = {
     "fitted": lambda: load_preset(FITTED_PRESET),
 }
 CHUNK_FRAMES = 32
-MAX_SIDE = 4096
-"""The largest ``--height`` or ``--width`` (pixels): ten times a spike camera's side, and a
-chunk of :data:`CHUNK_FRAMES` frames of it in a few GiB."""
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

@@ -8,8 +8,9 @@ import json
 import sys
 from pathlib import Path
 
-from spk2img.cli.arguments import thread_count
+from spk2img.cli.arguments import check_output_file, thread_count
 from spk2img.errors import InputError
+from spk2img.io.spikes import MAX_SIDE
 from spk2img.runtime.onnx_backend import DEVICES
 
 
@@ -21,6 +22,8 @@ def parse_size(text: str) -> tuple[int, int]:
         raise InputError(f"a size is HEIGHTxWIDTH, e.g. 250x400, got {text!r}") from None
     if height < 1 or width < 1:
         raise InputError(f"sizes must be positive, got {text!r}")
+    if max(height, width) > MAX_SIDE:
+        raise InputError(f"sides must be at most {MAX_SIDE}, got {text!r}")
     return height, width
 
 
@@ -88,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
 
     # each case's torch and onnxruntime buffers go back to the system when freed, so the peak
     # is the largest case's, not the sum of the heaps left behind (2.50 -> 2.15 GB for default)
+    if args.json:
+        check_output_file(args.json, "--json")
     map_large_allocations_apart()
     if args.threads:
         torch.set_num_threads(args.threads)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 import torch
+from google.protobuf.message import DecodeError
 
 from spk2img.errors import InputError
 from spk2img.evaluation.metrics import psnr
@@ -154,7 +155,11 @@ def reference_model(onnx_path: str | Path, checkpoint: str | Path | None = None)
     its metadata. An ONNX file holds no PyTorch code, so one of these must exist.
     """
     onnx_path = Path(onnx_path)
-    metadata = graph_props(onnx.load(onnx_path))
+    try:
+        graph = onnx.load(onnx_path)
+    except DecodeError as exc:
+        raise InputError(f"{onnx_path}: not an ONNX model ({exc})") from None
+    metadata = graph_props(graph)
     beside = onnx_path.with_suffix(".pt")
     if checkpoint is None and beside.is_file():
         checkpoint = beside

@@ -29,10 +29,19 @@ def frame_nbytes(height: int, width: int) -> int:
     return (height * width + 7) // 8
 
 
-def check_size(height: int, width: int) -> None:
-    """Raise :class:`SpikeFormatError` unless both sides are positive integers."""
+MAX_SIDE = 4096
+"""The largest frame side that the commands which build frames of a size asked for (simulate,
+models, export, verify) take (pixels): ten times a spike camera's. Streams read are not held to
+it (the service has its own limit in pixels)."""
+
+
+def check_size(height: int, width: int, max_side: int | None = None) -> None:
+    """Raise :class:`SpikeFormatError` unless both sides are positive integers (and at most
+    ``max_side``, when given)."""
     if int(height) != height or int(width) != width or height < 1 or width < 1:
         raise SpikeFormatError(f"height and width must be positive integers, got {height}x{width}")
+    if max_side is not None and max(height, width) > max_side:
+        raise SpikeFormatError(f"height and width must be at most {max_side}, got {height}x{width}")
 
 
 def pack_frames(frames: np.ndarray) -> bytes:
