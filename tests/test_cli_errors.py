@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from spk2img.cli import main
 
@@ -28,6 +29,8 @@ def _one_line(capsys, command: str) -> str:
         (["--centers", str(2**70)], "is beyond any stream"),
         (["--url", "notaurl"], "must look like http://HOST:PORT"),
         (["--url", "ftp://host:1"], "must look like http://HOST:PORT"),
+        (["--method", "net", "--window", "21"], "--window is for --method tfp and tfi"),
+        (["--method", "net", "--checkpoint", "c.pt"], "a checkpoint is for backend torch"),
     ],
 )
 def test_reconstruct_refuses_in_one_line(tmp_path, stream, capsys, extra, says):
@@ -44,6 +47,10 @@ def test_a_file_where_a_folder_must_go_is_one_line(tmp_path, stream, capsys):
     assert "afile" in _one_line(capsys, "reconstruct")
     data = tmp_path / "data"
     data.mkdir()
+    assert main(["pack-data", "--data", str(data), "--out", str(tmp_path / "pack")]) == 2
+    assert "no training sources" in _one_line(capsys, "pack-data")
+    assert not (tmp_path / "pack").exists()
+    Image.fromarray(np.full((64, 64), 128, np.uint8)).save(data / "photo.png")
     assert main(["pack-data", "--data", str(data), "--out", str(tmp_path / "afile")]) == 2
     assert "afile" in _one_line(capsys, "pack-data")
 
@@ -66,3 +73,6 @@ def test_sizes_beyond_any_camera_and_files_that_are_no_graph_are_refused_first(
     json_out = str(tmp_path / "afile" / "r.json")
     assert main(["verify", str(stream), "--json", json_out]) == 2
     assert "--json" in _one_line(capsys, "verify")
+    for flag, value in (("--atol", "nan"), ("--atol", "-1"), ("--sizes", ",")):
+        assert main(["verify", str(stream), flag, value]) == 2
+        assert f"{flag} " in _one_line(capsys, "verify")

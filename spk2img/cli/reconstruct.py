@@ -132,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
     interrupted run keeps every finished frame and ``--resume`` continues it."""
     if args.out.suffix != ".npz":
         raise InputError(f"--out must name a .npz file, got {args.out}")
+    if args.method == "net" and args.window != DEFAULT_TFP_WINDOW:
+        raise InputError("--window is for --method tfp and tfi: net reads its model's own window")
     if args.png_dir:
         _check_png_dir(args.png_dir)
     spikes = api.read_spikes(args.input, args.height, args.width)

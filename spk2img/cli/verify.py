@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -93,6 +94,10 @@ def run(args: argparse.Namespace) -> int:
     # is the largest case's, not the sum of the heaps left behind (2.50 -> 2.15 GB for default)
     if args.json:
         check_output_file(args.json, "--json")
+    if args.atol is not None and not 0 <= args.atol < math.inf:
+        raise InputError(f"--atol {args.atol}: must be a number >= 0")
+    if args.sizes is not None and not args.sizes.replace(",", "").strip():
+        raise InputError(f"--sizes {args.sizes!r}: name at least one HEIGHTxWIDTH")
     map_large_allocations_apart()
     if args.threads:
         torch.set_num_threads(args.threads)

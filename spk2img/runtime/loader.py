@@ -117,6 +117,11 @@ def load_network(
     """
     if backend not in BACKENDS:
         raise InputError(f"unknown backend {backend!r}: choose one of {', '.join(BACKENDS)}")
+    if checkpoint is not None and backend != "torch":
+        raise InputError(
+            "a checkpoint is for backend torch: backend onnx runs the model's graph (add "
+            "--backend torch, or drop --checkpoint)"
+        )
     if backend == "torch" and device != "cpu":
         raise InputError(f"device {device!r} is for the onnx backend (torch runs on the CPU)")
     if batch < 1:

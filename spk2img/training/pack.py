@@ -69,6 +69,11 @@ def pack_training_data(
             for path in sorted(root.glob(pattern)):
                 if path.is_file():
                     members[f"{root.name}/{path.relative_to(root).as_posix()}"] = path
+    if not record["train"]:
+        raise ValueError(
+            f"no training sources (photos or clips) under {', '.join(map(str, roots))}: "
+            "nothing to pack"
+        )
     out.mkdir(parents=True, exist_ok=True)
     archive = out / PACK_NAME
     with zipfile.ZipFile(archive, "w", zipfile.ZIP_STORED) as pack:
