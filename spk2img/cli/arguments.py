@@ -1,5 +1,5 @@
-"""Argument types that several subcommands share (argparse ``type=`` callables: a bad value is
-argparse's one-line error and exit 2)."""
+"""Checks of arguments that several subcommands share: argparse ``type=`` callables (a bad value
+is argparse's one-line error and exit 2) and output paths checked before any work."""
 
 from __future__ import annotations
 
