@@ -76,3 +76,12 @@ def test_sizes_beyond_any_camera_and_files_that_are_no_graph_are_refused_first(
     for flag, value in (("--atol", "nan"), ("--atol", "-1"), ("--sizes", ",")):
         assert main(["verify", str(stream), flag, value]) == 2
         assert f"{flag} " in _one_line(capsys, "verify")
+
+
+@pytest.mark.parametrize("command", ["inspect", "fit-sensor", "reconstruct"])
+def test_a_folder_given_as_the_spike_file_is_named_as_one(tmp_path, capsys, command):
+    extra = (
+        ["--out", str(tmp_path / "o.npz"), "--method", "tfp"] if command == "reconstruct" else []
+    )
+    assert main([command, str(tmp_path), *extra]) == 2
+    assert f"{tmp_path} is a folder, not a spike file" in _one_line(capsys, command)

@@ -200,6 +200,8 @@ def read_spikes(
     ``FileNotFoundError`` for a missing file.
     """
     path = Path(path)
+    if path.is_dir():
+        raise SpikeFormatError(f"{path} is a folder, not a spike file")
     if not path.is_file():
         raise FileNotFoundError(f"no such file: {path}")
     suffix = path.suffix.lower()
