@@ -3,6 +3,7 @@ decide whether training in bf16 on it pays (docs/training_data.md, "bf16 on the 
 
 from __future__ import annotations
 
+import os
 import platform
 from pathlib import Path
 
@@ -34,3 +35,11 @@ def cpu_words() -> str:
     """The CPU's model and its bf16 matrix units, e.g. ``Intel(R) Xeon(R) Processor (AMX
     bf16)`` or ``AMD EPYC 7B13 (no AMX)``."""
     return f"{cpu_model()} ({'AMX bf16' if has_amx_bf16() else 'no AMX'})"
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.scoring import score_images
-from spk2img.hardware import cpu_model
+from spk2img.hardware import available_cores, cpu_model
 from spk2img.model.config import MEMBERS
 
 from . import artifacts, gpu
@@ -513,10 +513,7 @@ def machine() -> dict:
         "python": platform.python_version(),
         "platform": platform.platform(),
     }
-    try:
-        info["cores_available"] = len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        info["cores_available"] = os.cpu_count()
+    info["cores_available"] = available_cores()
     meminfo = Path("/proc/meminfo")
     if meminfo.is_file():
         total_kib = int(meminfo.read_text().split("MemTotal:")[1].split()[0])

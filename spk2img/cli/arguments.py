@@ -8,20 +8,16 @@ import os
 from pathlib import Path
 
 from spk2img.errors import InputError
+from spk2img.hardware import available_cores
 
 THREADS_PER_CORE = 4
 """The most threads a command may ask for per core available: more only slow the runtime down
 (a thousand threads on a few cores turn a second's work into minutes)."""
 
 
-def cores_available() -> int:
-    """The CPU cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-
-
 def thread_count(text: str) -> int:
     """``--threads``: a whole number from 1 to :data:`THREADS_PER_CORE` x the cores here."""
-    cores = cores_available()
+    cores = available_cores()
     most = THREADS_PER_CORE * cores
     try:
         value = int(text)
@@ -35,14 +31,21 @@ def thread_count(text: str) -> int:
     return value
 
 
+def check_output_folder(directory: Path, flag: str) -> None:
+    """Make output folder ``directory`` before any work, so that a run does not end with its
+    work lost to a path it cannot write (:class:`InputError`, naming ``flag``)."""
+    if directory.exists() and not directory.is_dir():
+        raise InputError(f"{flag} {directory}: a file is there, not a folder")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"{flag} {directory}: cannot make it ({exc.strerror})") from None
+    if not os.access(directory, os.W_OK):
+        raise InputError(f"{flag} {directory}: this user cannot write there")
+
+
 def check_output_file(path: Path, flag: str) -> None:
-    """Make the folder of output file ``path`` before any work, so that a run does not end with
-    its work lost to a path it cannot write (:class:`InputError`, naming ``flag``)."""
+    """:func:`check_output_folder` for the folder of output file ``path``."""
     if path.is_dir():
         raise InputError(f"{flag} {path}: a folder is there, not a file")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"{flag} {path}: cannot make its folder ({exc.strerror})") from None
-    if not os.access(path.parent, os.W_OK):
-        raise InputError(f"{flag} {path}: this user cannot write in {path.parent}")
+    check_output_folder(path.parent, flag)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -12,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img import api
-from spk2img.cli.arguments import thread_count
+from spk2img.cli.arguments import check_output_folder, thread_count
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.errors import InputError
 from spk2img.io.frame_size import check_frame_size
@@ -135,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     if args.method == "net" and args.window != DEFAULT_TFP_WINDOW:
         raise InputError("--window is for --method tfp and tfi: net reads its model's own window")
     if args.png_dir:
-        _check_png_dir(args.png_dir)
+        check_output_folder(args.png_dir, "--png-dir")
     spikes = api.read_spikes(args.input, args.height, args.width)
     if isinstance(spikes, DatStream) and not args.force_size:
         check_frame_size(args.input, args.height, args.width)
@@ -312,18 +311,6 @@ def _remote_source(args: argparse.Namespace, spikes: api.Spikes):
     from spk2img.clients.remote import remote_frames  # the client extra
 
     return remote_frames(args, spikes, args.stride)
-
-
-def _check_png_dir(directory: Path) -> None:
-    """Make ``--png-dir`` (:class:`InputError` when it cannot be a folder of new files)."""
-    if directory.exists() and not directory.is_dir():
-        raise InputError(f"--png-dir {directory}: a file is there, not a folder")
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"--png-dir {directory}: cannot make it ({exc.strerror})") from None
-    if not os.access(directory, os.W_OK):
-        raise InputError(f"--png-dir {directory}: this user cannot write there")
 
 
 def save_png(directory: Path, center: int, image: np.ndarray) -> None:

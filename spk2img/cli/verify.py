@@ -11,7 +11,7 @@ from pathlib import Path
 
 from spk2img.cli.arguments import check_output_file, thread_count
 from spk2img.errors import InputError
-from spk2img.io.spikes import MAX_SIDE
+from spk2img.io.spikes import MAX_SIDE, check_size
 from spk2img.runtime.onnx_backend import DEVICES
 
 
@@ -21,10 +21,7 @@ def parse_size(text: str) -> tuple[int, int]:
         height, width = (int(part) for part in text.lower().split("x"))
     except ValueError:
         raise InputError(f"a size is HEIGHTxWIDTH, e.g. 250x400, got {text!r}") from None
-    if height < 1 or width < 1:
-        raise InputError(f"sizes must be positive, got {text!r}")
-    if max(height, width) > MAX_SIDE:
-        raise InputError(f"sides must be at most {MAX_SIDE}, got {text!r}")
+    check_size(height, width, MAX_SIDE)
     return height, width
 
 
@@ -90,14 +87,14 @@ def run(args: argparse.Namespace) -> int:
     from spk2img.runtime.allocator import map_large_allocations_apart
     from spk2img.runtime.block_codec import block_graph_paths
 
-    # each case's torch and onnxruntime buffers go back to the system when freed, so the peak
-    # is the largest case's, not the sum of the heaps left behind (2.50 -> 2.15 GB for default)
     if args.json:
         check_output_file(args.json, "--json")
     if args.atol is not None and not 0 <= args.atol < math.inf:
         raise InputError(f"--atol {args.atol}: must be a number >= 0")
     if args.sizes is not None and not args.sizes.replace(",", "").strip():
         raise InputError(f"--sizes {args.sizes!r}: name at least one HEIGHTxWIDTH")
+    # each case's torch and onnxruntime buffers go back to the system when freed, so the peak
+    # is the largest case's, not the sum of the heaps left behind (2.50 -> 2.15 GB for default)
     map_large_allocations_apart()
     if args.threads:
         torch.set_num_threads(args.threads)

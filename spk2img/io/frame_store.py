@@ -58,8 +58,8 @@ class FrameStore:
         self._centers: list[int] = []
         self._held_since: float | None = None
         self._chunks = 0
-        if self.dir.is_dir() and not resume and not self._chunk_paths():
-            shutil.rmtree(self.dir)  # a run that failed before its first frame: nothing to keep
+        if not resume:
+            self.discard_if_empty()  # left by a run that failed before its first frame
         if self.dir.is_dir():
             if not resume:
                 raise InputError(

@@ -8,23 +8,16 @@ description as help); flags win over the environment. A new field is a new flag.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from spk2img.hardware import available_cores
+
 LogLevel = Literal["critical", "error", "warning", "info", "debug"]
 Device = Literal["cpu", "auto", "cuda", "tensorrt"]
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 class ServiceSettings(BaseSettings):
