@@ -62,6 +62,14 @@ def test_health_readiness_and_models(service):
     assert service.get("/docs").status_code == 200
     paths = service.get("/openapi.json").json()["paths"]
     assert {"/v1/reconstruct", "/v1/models", "/healthz", "/readyz", "/metrics"} <= set(paths)
+    for path, body in (
+        ("/healthz", b'{"status":"ok"}'),
+        ("/readyz", service.get("/readyz").content),
+    ):
+        head = httpx.head(service.url + path, timeout=10)  # as monitors probe: no body
+        assert (head.status_code, head.content) == (200, b"")
+        assert head.headers["content-length"] == str(len(body))
+    assert httpx.head(service.url + "/v1/models", timeout=10).status_code == 405
 
 
 @pytest.mark.parametrize(

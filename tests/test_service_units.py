@@ -22,6 +22,8 @@ from spk2img.errors import InputError
 from spk2img.model.config import PUBLISHED_GEOMETRY
 from spk2img.runtime.loader import LoadedNetwork
 from spk2img.runtime.methods import method_plan
+from spk2img.service import app as app_module
+from spk2img.service import server as server_module
 from spk2img.service.app import create_app
 from spk2img.service.duplex import ClientGone, _Upload
 from spk2img.service.inference import InferencePool
@@ -113,6 +115,28 @@ def test_serve_on_a_file_that_is_no_model_or_a_busy_port_is_one_line(tmp_path, c
         f"spk2img serve: error: --health-port {port}: cannot listen on 127.0.0.1:{port} "
         "(Address already in use)",
     ]
+
+
+def test_serve_loads_the_model_once_and_the_app_serves_that_network(monkeypatch, standin_model):
+    """The CLI loads the network before the server starts; the app's start-up keeps it."""
+    loads = []
+    real_load = app_module.load_network
+    monkeypatch.setattr(
+        app_module, "load_network", lambda *a, **k: loads.append(a) or real_load(*a, **k)
+    )
+    served = []
+    monkeypatch.setattr(server_module.Listeners, "run", lambda self: served.append(self.app))
+    assert main(["serve", "--model", str(standin_model), "--port", "0"]) == 0
+    (app,) = served
+    network = app.state.service.network
+    assert len(loads) == 1 and network.predict.path == standin_model
+
+    async def start_and_stop():
+        async with app.router.lifespan_context(app):
+            assert app.state.service.network is network
+
+    asyncio.run(start_and_stop())
+    assert len(loads) == 1
 
 
 def test_not_ready_before_the_model_is_loaded(standin_model):

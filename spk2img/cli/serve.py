@@ -43,17 +43,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from spk2img.runtime.onnx_backend import create_session
-    from spk2img.service.server import run as serve  # the serve extra (checked by cli.extras)
+    from spk2img.service.app import load_served_network  # the serve extra (cli.extras)
+    from spk2img.service.server import run as serve
 
     settings = settings_from_args(args)
     if not settings.model_path.is_file():  # a --model that is no model raised already
         raise InputError(f"no model file at {settings.model_path}{DEFAULT_MODEL_HINT}")
-    # what the app's start-up would fail on, found first: one line, not a server's traceback
-    create_session(settings.model_path, threads=1, device=settings.device)
     for flag, port in (("--port", settings.port), ("--health-port", settings.health_port)):
         check_port_free(settings.host, port, flag)
-    serve(settings)
+    # loaded before the server starts: a model or device that cannot run is one line, not a
+    # server's traceback
+    serve(settings, load_served_network(settings))
     return 0
 
 

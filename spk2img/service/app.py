@@ -1,6 +1,9 @@
 """The app factory: ``create_app(settings)`` builds a FastAPI app whose lifespan loads the ONNX
-network (:func:`~spk2img.runtime.loader.load_network`), starts the inference pool and warms the
-network up before ``/readyz`` turns 200."""
+network (:func:`load_served_network`) unless the app was given one, starts the inference pool
+and warms the network up before ``/readyz`` turns 200.
+
+``spk2img serve`` loads the network before the server starts (so a model or device that cannot
+run is one line and exit 2) and hands it to the app: the model is loaded once."""
 
 from __future__ import annotations
 
@@ -8,13 +11,12 @@ import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from functools import partial
 
 from fastapi import Depends, FastAPI
 
 from spk2img import __version__
 from spk2img.runtime.allocator import map_large_allocations_apart
-from spk2img.runtime.loader import load_network
+from spk2img.runtime.loader import LoadedNetwork, load_network
 
 from .errors import install_error_handlers
 from .inference import InferencePool
@@ -30,9 +32,12 @@ from .state import ServiceState
 logger = logging.getLogger("spk2img.service")
 
 
-def create_app(settings: ServiceSettings | None = None) -> FastAPI:
-    """A new app serving ``settings`` (default: from the environment)."""
-    state = ServiceState(settings or ServiceSettings())
+def create_app(
+    settings: ServiceSettings | None = None, network: LoadedNetwork | None = None
+) -> FastAPI:
+    """A new app serving ``settings`` (default: from the environment) with ``network``, one
+    loaded by :func:`load_served_network` for these settings (default: the lifespan loads it)."""
+    state = ServiceState(settings or ServiceSettings(), network=network)
     app = FastAPI(
         title="spk2img",
         version=__version__,
@@ -53,22 +58,31 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     return app
 
 
-@asynccontextmanager
-async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
-    state: ServiceState = app.state.service
-    settings = state.settings
-    load = partial(
-        load_network,
+def load_served_network(settings: ServiceSettings) -> LoadedNetwork:
+    """The network ``settings`` serve, not yet warmed up (the app warms it in its pool, so that
+    ``/readyz`` says when that is done).
+
+    Raises :class:`~spk2img.errors.InputError` for a model that does not load and
+    :class:`~spk2img.errors.DeviceError` for a device that cannot run here.
+    """
+    map_large_allocations_apart()  # freed buffers go back to the system (runtime.allocator)
+    return load_network(
         settings.model_path,
         device=settings.device,
         threads=settings.intra_op_threads,
         block_reuse=settings.block_reuse,
         batch=settings.batch,
         self_ensemble=settings.self_ensemble,
-        warm_up=False,  # in the pool, after start-up: /readyz says when it is done
+        warm_up=False,
     )
-    map_large_allocations_apart()  # freed buffers go back to the system (runtime.allocator)
-    state.network = await asyncio.to_thread(load)  # a GPU that cannot run here: no start
+
+
+@asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    state: ServiceState = app.state.service
+    settings = state.settings
+    if state.network is None:  # a GPU that cannot run here: no start
+        state.network = await asyncio.to_thread(load_served_network, settings)
     model = state.network.predict
     if model.device_note:
         logger.warning("%s", model.device_note)

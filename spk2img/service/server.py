@@ -30,6 +30,8 @@ from fastapi import FastAPI
 from starlette.types import ASGIApp, Receive, Scope, Send
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
+from spk2img.runtime.loader import LoadedNetwork
+
 from .app import create_app
 from .metrics import ServiceMetrics
 from .settings import ServiceSettings
@@ -185,6 +187,7 @@ class Listeners:
         asyncio.run(self.serve())
 
 
-def run(settings: ServiceSettings) -> None:
-    """Serve until stopped (SIGINT/SIGTERM)."""
-    Listeners(settings).run()
+def run(settings: ServiceSettings, network: LoadedNetwork | None = None) -> None:
+    """Serve ``network`` (default: loaded by the app's start-up) until stopped
+    (SIGINT/SIGTERM)."""
+    Listeners(settings, create_app(settings, network)).run()

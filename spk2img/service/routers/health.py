@@ -9,14 +9,18 @@ from ..schemas import ErrorDetail, Ready, Status
 from ..state import Service
 
 router = APIRouter(tags=["health"])
+# the probes answer HEAD as GET without the body (uptime monitors and load balancers send it);
+# the OpenAPI description lists GET only
 
 
+@router.head("/healthz", include_in_schema=False)
 @router.get("/healthz")
 def healthz() -> Status:
     """200 while the process lives."""
     return Status(status="ok")
 
 
+@router.head("/readyz", include_in_schema=False)
 @router.get(
     "/readyz",
     responses={
