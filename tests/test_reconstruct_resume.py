@@ -1,8 +1,11 @@
 """``spk2img reconstruct`` keeps its frames as they come (spk2img.io.frame_store): a run
-interrupted by Ctrl-C keeps every finished frame (arrays and PNGs) and ``--resume`` continues it
-to the frames of an uninterrupted run; runs that would mix arguments are refused."""
+interrupted by Ctrl-C or SIGTERM keeps every finished frame (arrays and PNGs) and ``--resume``
+continues it to the frames of an uninterrupted run; runs that would mix arguments are refused."""
 
 from __future__ import annotations
+
+import os
+import signal
 
 import numpy as np
 import pytest
@@ -27,21 +30,26 @@ def stream(tmp_path_factory):
     return path
 
 
-def interrupt_after(monkeypatch, frames: int) -> None:
-    """Make the run stop with Ctrl-C once ``frames`` frames have been kept."""
+def interrupt_after(monkeypatch, frames: int, stop: signal.Signals = signal.SIGINT) -> None:
+    """Make the run receive ``stop`` (Ctrl-C's SIGINT, or SIGTERM) once ``frames`` frames have
+    been kept."""
     add = FrameStore.add
 
     def add_then_stop(self, center, image):
         add(self, center, image)
-        if self.kept >= frames:
-            raise KeyboardInterrupt
+        if self.kept == frames:
+            os.kill(os.getpid(), stop)
 
     monkeypatch.setattr(FrameStore, "add", add_then_stop)
 
 
-@pytest.mark.parametrize("method", ["tfp", "net"])
+@pytest.mark.parametrize(
+    ("method", "stop"),
+    [("tfp", signal.SIGTERM), ("net", signal.SIGINT)],
+    ids=lambda value: getattr(value, "name", value),
+)
 def test_an_interrupted_run_keeps_its_frames_and_resumes_to_the_same_result(
-    tmp_path, stream, monkeypatch, capsys, method
+    tmp_path, stream, monkeypatch, capsys, method, stop
 ):
     monkeypatch.setattr(frame_store, "CHUNK_FRAMES", 4)
     flags = ["--method", method, "--stride", "7", "--no-progress", "--threads", "1"]
@@ -55,9 +63,10 @@ def test_an_interrupted_run_keeps_its_frames_and_resumes_to_the_same_result(
     out, pngs = tmp_path / "run.npz", tmp_path / "png"
     args = ["reconstruct", str(stream), "--out", str(out), "--png-dir", str(pngs), *flags]
     with monkeypatch.context() as patched:
-        interrupt_after(patched, 10)
-        assert main(args) == 130
-    assert "interrupted: 10 of 38 frames kept" in capsys.readouterr().err
+        interrupt_after(patched, 10, stop)
+        assert main(args) == 128 + stop  # 130 for Ctrl-C, 143 for SIGTERM
+    said = "terminated" if stop == signal.SIGTERM else "interrupted"
+    assert f"{said}: 10 of 38 frames kept" in capsys.readouterr().err
     assert not out.exists() and len(list(pngs.glob("*.png"))) == 10
     chunks = sorted(partial_dir(out).glob("chunk_*.npz"))
     assert sum(len(np.load(c)["centers"]) for c in chunks) == 10  # all flushed on Ctrl-C

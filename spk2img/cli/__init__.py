@@ -17,6 +17,7 @@ from spk2img.cli.extras import (
     extra_message,
     missing_extra,
 )
+from spk2img.cli.interrupts import exit_code, interrupt_message, sigterm_as_interrupt
 from spk2img.errors import InputError
 
 SUBCOMMANDS = [
@@ -69,7 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     try:
-        code = int(args.run(args) or 0)
+        with sigterm_as_interrupt():
+            code = int(args.run(args) or 0)
         sys.stdout.flush()  # a reader that left is found here, not at exit
         return code
     except MissingExtra as exc:
@@ -81,9 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         if extra is None:
             raise
         return _fail(args, extra_message(extra, args.command, [exc.name]), EXIT_MISSING_EXTRA)
-    except KeyboardInterrupt:
-        print("spk2img: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (cli.interrupts)
+        print(f"spk2img: {interrupt_message(exc)}", file=sys.stderr)
+        return exit_code(exc)
     except BrokenPipeError:  # the reader left (`spk2img models | head`): stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no error at exit
         return 141

@@ -12,6 +12,7 @@ import numpy as np
 
 from spk2img import api
 from spk2img.cli.arguments import check_output_folder, thread_count
+from spk2img.cli.interrupts import exit_code, interrupt_message
 from spk2img.cli.progress import add_progress_flags, progress_bar, say, show_progress
 from spk2img.errors import InputError
 from spk2img.io.frame_size import check_frame_size
@@ -120,10 +121,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_progress_flags(p)
 
 
-EXIT_INTERRUPTED = 130
-"""Exit code of a run stopped by Ctrl-C (its finished frames are kept for --resume)."""
-
-
 def run(args: argparse.Namespace) -> int:
     """The flags are checked where the API checks its arguments (Reconstructor, the runtime's
     ``method_window`` and ``load_network``), the output's suffix here. Frames are kept as they
@@ -148,14 +145,14 @@ def run(args: argparse.Namespace) -> int:
         owed = [int(k) for k in source.centers if int(k) not in store.done]
         try:
             _keep_frames(args, source, store, owed)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM
             store.flush()
             say(
                 args,
-                f"interrupted: {store.kept} of {len(source.centers)} frames kept in "
+                f"{interrupt_message(exc)}: {store.kept} of {len(source.centers)} frames kept in "
                 f"{store.dir}; the same command with --resume continues the run",
             )
-            return EXIT_INTERRUPTED
+            return exit_code(exc)
         except BaseException:
             store.flush()  # what is done stays done; --resume continues from it
             store.discard_if_empty()
