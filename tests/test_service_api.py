@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import re
 import time
 
@@ -13,6 +14,7 @@ from reference import tfp_reference
 from service_support import OCTET, DuplexClient, parse_frames, stream_bytes
 
 from spk2img.io.light import to_display
+from spk2img.io.spikes import frame_nbytes
 from spk2img.protocol.framing import MEDIA_TYPE, ErrorRecord
 from spk2img.runtime.methods import build_reconstructor, method_plan
 from spk2img.runtime.onnx_backend import OnnxModel
@@ -20,6 +22,16 @@ from spk2img.runtime.stream import collect, frame_chunks, run_stream
 
 H, W, T = 16, 24, 100
 SPIKES, BODY = stream_bytes(T, H, W, seed=1)
+
+
+def _npy_upload(spikes: np.ndarray) -> bytes:
+    """``spikes`` as a .npy file, zero-padded to whole frames: what a user may post by mistake."""
+    buffer = io.BytesIO()
+    np.save(buffer, spikes)
+    return buffer.getvalue() + bytes(-buffer.tell() % frame_nbytes(H, W))
+
+
+NPY_BODY = _npy_upload(SPIKES)
 
 
 def post(service, query: str, body=BODY, headers=OCTET) -> httpx.Response:
@@ -154,6 +166,7 @@ BAD_REQUESTS = [
     (f"height={H}&width={W}&centers=20", {"content-type": "image/png"}, BODY, 415, "Content-Type"),
     (f"height={H}&width={W}&centers=20", {}, BODY, 415, "Content-Type"),
     (f"height={H}&width={W}&centers=20", OCTET, b"", 422, "empty"),
+    (f"height={H}&width={W}&centers=20", OCTET, NPY_BODY, 422, "the upload is a .npy file"),
     (f"height={H}&width={W}&centers=20", OCTET, BODY[:-1], 422, "whole number of 16x24 frames"),
     (f"height={H}&width={W}&centers=80", OCTET, BODY, 422, "no full 41-frame window"),
     (f"height={H}&width={W}&centers=19", OCTET, BODY, 422, "first valid centre is 20"),

@@ -1,3 +1,5 @@
+import io
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -9,6 +11,7 @@ from spk2img.io.spikes import (
     SpikeDecoder,
     SpikeFormatError,
     frame_nbytes,
+    numpy_file_kind,
     pack_frames,
     read_spikes,
     unpack_frames,
@@ -66,6 +69,58 @@ def test_decoding_is_identical_for_every_chunking(frames, data):
     got = [f for piece in pieces for f in dec.feed(piece)]
     dec.finish()
     np.testing.assert_array_equal(np.stack(got), frames)
+
+
+def _numpy_file(array: np.ndarray, kind: str, key: str) -> bytes:
+    buffer = io.BytesIO()
+    if kind == ".npy":
+        np.save(buffer, array)
+    else:
+        (np.savez if key == "arr" else np.savez_compressed)(buffer, **{key: array})
+    return buffer.getvalue()
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    spike_arrays(max_t=50),
+    st.sampled_from(["u1", "bool", "f4", ">i8"]),
+    st.sampled_from([".npy", ".npz"]),
+    st.sampled_from(["spk", "arr", "a_long_array_name"]),
+    st.data(),
+)
+def test_a_numpy_file_sent_as_dat_bits_is_named_never_decoded(frames, dtype, kind, key, data):
+    """Whatever array, dtype and key a ``.npy`` or ``.npz`` holds, its first bytes name it, in
+    any chunking of an upload and as a file called ``.dat``; packed spikes never match."""
+    content = _numpy_file(frames.astype(dtype), kind, key)
+    assert numpy_file_kind(content[:64]) == kind
+    assert numpy_file_kind(pack_frames(frames)[:64]) is None
+    height, width = data.draw(st.sampled_from([(1, 8), (4, 4), (16, 24), (250, 400)]))
+    cuts = sorted(data.draw(st.lists(st.integers(0, len(content)), max_size=6)))
+    decoder = SpikeDecoder(height, width)
+    with pytest.raises(SpikeFormatError, match=rf"the upload is a \{kind} file"):
+        for a, b in zip([0, *cuts], [*cuts, len(content)], strict=True):
+            decoder.feed(content[a:b])
+        decoder.finish()
+
+
+def test_a_numpy_file_named_dat_is_named(tmp_path, capsys):
+    from spk2img.cli import main
+
+    path = tmp_path / "s.dat"
+    path.write_bytes(_numpy_file(np.zeros((100, 16, 16), np.uint8), ".npz", "spk"))
+    args = [
+        "reconstruct",
+        str(path),
+        "--height",
+        "16",
+        "--width",
+        "16",
+        "--out",
+        str(tmp_path / "o.npz"),
+    ]
+    assert main([*args, "--method", "tfp"]) == 2
+    err = capsys.readouterr().err
+    assert "is a .npz file, not the packed bits" in err and "give it the .npz suffix" in err
 
 
 @settings(max_examples=25, deadline=None)

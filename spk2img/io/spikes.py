@@ -148,6 +148,9 @@ class DatStream:
         size = self.path.stat().st_size
         if size == 0:
             raise SpikeFormatError(f"{self.path}: empty file, no frames")
+        with self.path.open("rb") as file:
+            head = file.read(SNIFF_BYTES)
+        check_not_a_numpy_file(head, str(self.path), "give it the {kind} suffix: spk2img reads it")
         if size % self.frame_nbytes:
             raise SpikeFormatError(
                 f"{self.path}: {size} bytes is not a whole number of {height}x{width} frames "
@@ -255,6 +258,44 @@ def write_spikes(path: str | Path, frames: np.ndarray) -> None:
         )
 
 
+SNIFF_BYTES = 64
+"""Bytes at a stream's start that tell a numpy file sent where raw ``.dat`` bits go."""
+UPLOAD_REMEDY = (
+    "send the frames packed (spk2img.io.spikes.pack_frames); the Python client and "
+    "'spk2img reconstruct FILE{kind} --url URL' send {kind} files packed"
+)
+
+
+def numpy_file_kind(head: bytes) -> str | None:
+    """``".npy"`` or ``".npz"`` when ``head`` (a stream's first :data:`SNIFF_BYTES` bytes or
+    all of a shorter one) is the start of such a file rather than packed spike frames, else None.
+
+    The whole structure is checked: a ``.npy`` magic, version and the first key of its header;
+    a zip entry whose name ends in ``.npy``. Packed spikes match either by chance with a
+    probability under 2^-60."""
+    if head[:6] == b"\x93NUMPY" and len(head) >= 20 and head[6] in (1, 2, 3) and head[7] == 0:
+        start = 10 if head[6] == 1 else 12
+        if head[start : start + 8] == b"{'descr'":
+            return ".npy"
+    if head[:4] == b"PK\x03\x04" and len(head) >= 34:
+        name_length = int.from_bytes(head[26:28], "little")
+        if head[30 : 30 + name_length].endswith(b".npy"):
+            return ".npz"
+    return None
+
+
+def check_not_a_numpy_file(head: bytes, where: str, remedy: str) -> None:
+    """Raise :class:`SpikeFormatError` when ``head`` starts a ``.npy`` or ``.npz`` file (its
+    header would be decoded as spikes: a silent wrong answer), naming ``where`` it was met and
+    the ``remedy`` (``{kind}`` in it becomes ``.npy`` or ``.npz``)."""
+    kind = numpy_file_kind(head)
+    if kind is not None:
+        raise SpikeFormatError(
+            f"{where} is a {kind} file, not the packed bits of a .dat stream (docs/format.md): "
+            + remedy.format(kind=kind)
+        )
+
+
 class SpikeDecoder:
     """Incremental ``.dat`` decoder: feed byte chunks of any size, get whole frames back.
 
@@ -267,10 +308,18 @@ class SpikeDecoder:
         self.height, self.width = height, width
         self.frame_nbytes = frame_nbytes(height, width)
         self._pending = bytearray()
+        self._head = bytearray()  # the stream's first SNIFF_BYTES bytes, until checked
         self.frames_decoded = 0
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> np.ndarray:
-        """Add ``chunk``; return the frames it completed as ``(n, H, W) uint8`` (n may be 0)."""
+        """Add ``chunk``; return the frames it completed as ``(n, H, W) uint8`` (n may be 0).
+
+        Raises :class:`SpikeFormatError` once the stream's first bytes are those of a ``.npy``
+        or ``.npz`` file."""
+        if self._head is not None:
+            self._head += chunk[: SNIFF_BYTES - len(self._head)]
+            if len(self._head) == SNIFF_BYTES:
+                self._check_head()
         self._pending += chunk
         n_whole = len(self._pending) // self.frame_nbytes
         if n_whole == 0:
@@ -282,7 +331,10 @@ class SpikeDecoder:
         return frames
 
     def finish(self) -> None:
-        """Declare the end of the stream; raise if it ended mid-frame or held no frame at all."""
+        """Declare the end of the stream; raise if it ended mid-frame, held no frame at all or
+        was a numpy file."""
+        if self._head is not None:
+            self._check_head()
         if self._pending:
             raise SpikeFormatError(
                 f"stream ended inside frame {self.frames_decoded}: {len(self._pending)} of "
@@ -290,3 +342,7 @@ class SpikeDecoder:
             )
         if self.frames_decoded == 0:
             raise SpikeFormatError("empty spike stream: no frames")
+
+    def _check_head(self) -> None:
+        head, self._head = bytes(self._head), None
+        check_not_a_numpy_file(head, "the upload", UPLOAD_REMEDY)
