@@ -326,6 +326,23 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
         train(TrainConfig(steps=1, **TINY_RUN | {"run_dir": str(corrupt_run)}))
 
 
+def test_init_grows_small_into_medium(tmp_path):
+    """``--member medium --init`` a ``small`` checkpoint: the grown network's first loss is the
+    ``small`` network's on the same batch, and the run records what it grew from."""
+    source = tmp_path / "small"
+    small = TINY_RUN | {"member": "small", "val_every": 100}
+    train(TrainConfig(run_dir=str(source), steps=1, **small))
+    grown = tmp_path / "medium"
+    medium = small | {"member": "medium", "init": str(source / "last.pt")}
+    train(TrainConfig(run_dir=str(grown), steps=1, **medium))
+    spikes, truth = (torch.from_numpy(a) for a in SampleMaker(16, seed=0).batch(0, 2))
+    with torch.no_grad():
+        expected = hierarchical_loss(*load_model(source / "last.pt").train()(spikes), truth)
+    assert _records(grown, "train")[0]["loss"] == pytest.approx(expected.item(), rel=1e-4)
+    state = load_checkpoint(grown / "last.pt")
+    assert state["member"] == "medium" and state["init_from"]["member"] == "small"
+
+
 @pytest.mark.parametrize(
     "detail",
     [(0, 1, False), (24, 1, True), (48, 2, False)],

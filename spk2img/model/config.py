@@ -213,16 +213,21 @@ PUBLISHED_GEOMETRY = PAPER.geometry
 the length the simulated evaluation sets are filmed at and TFP's default window. A model with a
 shorter window reads their centred crop (:meth:`Geometry.crop`)."""
 
+SMALL = replace(
+    PAPER,
+    channels=24,
+    residual_blocks=4,
+    deformable_groups=4,
+    reliability_hidden=24,
+    fusion_hidden=72,
+)
+
 MEMBERS: dict[str, Spk2ImgNetConfig] = {
     "paper": PAPER,
-    "small": replace(
-        PAPER,
-        channels=24,
-        residual_blocks=4,
-        deformable_groups=4,
-        reliability_hidden=24,
-        fusion_hidden=72,
+    "medium": replace(
+        SMALL, channels=48, deformable_groups=8, reliability_hidden=48, fusion_hidden=144
     ),
+    "small": SMALL,
     "lite": replace(
         PAPER,
         channels=24,
@@ -260,7 +265,9 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         fusion_hidden=16,
     ),
 }
-"""The named family members, largest first: ``paper`` (3.90 M parameters), ``small`` (0.49 M,
+"""The named family members, largest first: ``paper`` (3.90 M parameters), ``medium`` (1.92 M,
+``small`` twice as wide: grown from a trained ``small`` it starts as that network,
+:mod:`spk2img.model.growth`), ``small`` (0.49 M,
 the paper's width ratios at 24 channels), ``lite`` (0.41 M, 24 channels at half resolution
 after SALI: a quarter of ``small``'s cost), ``cpu`` (0.76 M, built for CPUs: SALI on 2x2 patches
 folded into channels, 32 channels at a quarter of the size after it, a detail refinement of

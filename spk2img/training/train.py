@@ -33,6 +33,7 @@ from spk2img.model.checkpoint import (
     stored_config,
 )
 from spk2img.model.config import Spk2ImgNetConfig, get_config
+from spk2img.model.growth import grow_weights, grows_into, growth_problems
 from spk2img.model.network import Spk2ImgNet
 from spk2img.provenance import git_commit
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
@@ -350,9 +351,11 @@ def train(cfg: TrainConfig) -> dict:
 
 
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
-    """Load the weights of checkpoint ``path`` into ``model`` (same shape) and return where
-    they came from: the path, the run that wrote it (its run folder's name, where the
-    checkpoint records one), and the step, wall time, member and commit that trained them."""
+    """Load the weights of checkpoint ``path`` into ``model`` (the same shape, or one the
+    checkpoint's network grows into: its detail refinement, :func:`grows_detail`, or its widths
+    and depth, :func:`~spk2img.model.growth.grows_into`) and return where they came from: the
+    path, the run that wrote it (its run folder's name, where the checkpoint records one), and
+    the step, wall time, member and commit that trained them."""
     state = load_checkpoint(path)
     stored = stored_config(state, path)
     if stored == model.config:
@@ -372,8 +375,20 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
                 raise InputError(
                     f"--init {path}: its detail refinement does not fit: {exc}"
                 ) from exc
+    elif grows_into(stored, model.config):
+        # a narrower or shallower member grown into this one: it starts as the checkpoint's net
+        try:
+            grow_weights(model, state["model"], stored)
+        except ValueError as exc:
+            raise InputError(
+                f"--init {path}: its weights do not grow into this member: {exc}"
+            ) from exc
     else:
-        raise InputError(f"--init {path}: another shape than the member being trained")
+        problems = growth_problems(stored, model.config)
+        raise InputError(
+            f"--init {path}: another shape than the member being trained, which it cannot grow "
+            f"into: {'; '.join(problems)}"
+        )
     run_dir = state.get("train_config", {}).get("run_dir")
     return {
         "path": str(path),

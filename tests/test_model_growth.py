@@ -1,0 +1,135 @@
+"""A trained member grown wider and deeper (spk2img.model.growth) computes what it did, and its
+new channels learn."""
+
+from dataclasses import replace
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from spk2img.model.config import MEMBERS
+from spk2img.model.deform_conv import ModulatedDeformConv2d
+from spk2img.model.growth import grow_weights, grows_into, growth_problems
+from spk2img.model.network import build_model
+
+
+def _trained_looking(member) -> torch.nn.Module:
+    """A network with random weights everywhere, the offset predictors included (they start at
+    zero in a fresh one, which would leave the deformable sampling untested)."""
+    model = build_model(member)
+    for module in model.modules():
+        if isinstance(module, ModulatedDeformConv2d):
+            torch.nn.init.normal_(module.conv_offset_mask.weight, std=0.05)
+            torch.nn.init.normal_(module.conv_offset_mask.bias, std=0.5)
+    return model
+
+
+def _grown(old, config) -> torch.nn.Module:
+    new = build_model(config)
+    grow_weights(new, old.state_dict(), old.config)
+    return new
+
+
+def _assert_same_outputs(old, new, spikes) -> None:
+    for training in (False, True):
+        with torch.no_grad():
+            image, estimates = old.train(training)(spikes)
+            grown_image, grown_estimates = new.train(training)(spikes)
+        torch.testing.assert_close(grown_image, image, atol=1e-6, rtol=1e-5)
+        torch.testing.assert_close(grown_estimates, estimates, atol=0, rtol=0)
+
+
+def test_small_grown_into_medium_computes_what_small_did():
+    torch.manual_seed(0)
+    old = _trained_looking("small")
+    new = _grown(old, MEMBERS["medium"])
+    spikes = (torch.rand(2, 41, 19, 27) < 0.3).float()  # not a multiple of 4: padded inside
+    _assert_same_outputs(old, new, spikes)
+    fresh = build_model("medium").eval()
+    with torch.no_grad():  # the check can fail: a network not grown computes something else
+        assert (fresh(spikes)[0] - new.eval()(spikes)[0]).abs().max() > 1e-3
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    factor=st.integers(1, 3),
+    mask_extra=st.integers(0, 6),
+    fusion_extra=st.integers(0, 9),
+    blocks_extra=st.integers(0, 2),
+    seed=st.integers(0, 2**16),
+)
+def test_any_growth_of_widths_and_depth_computes_what_the_network_did(
+    factor, mask_extra, fusion_extra, blocks_extra, seed
+):
+    """``tiny`` (a 2-level pyramid, 2 convs a residual block) widened by any whole factor,
+    its masks' and fusion's hidden widths by any amount and its feature extractor by whole
+    blocks, the same spike window gives the same image."""
+    tiny = MEMBERS["tiny"]
+    config = replace(
+        tiny,
+        channels=tiny.channels * factor,
+        deformable_groups=tiny.deformable_groups * factor,
+        reliability_hidden=tiny.reliability_hidden * factor + mask_extra,
+        fusion_hidden=tiny.fusion_hidden + fusion_extra,
+        residual_blocks=tiny.residual_blocks + blocks_extra,
+    )
+    torch.manual_seed(seed)
+    old = _trained_looking("tiny")
+    assert grows_into(tiny, config) or config == tiny
+    new = _grown(old, config)
+    _assert_same_outputs(old, new, (torch.rand(1, 41, 10, 14) < 0.4).float())
+
+
+def test_the_new_width_learns():
+    """The zeros that keep the old channels from reading the new ones get gradients at once,
+    and the new channels reach the image after one update."""
+    torch.manual_seed(1)
+    old = _trained_looking("tiny")
+    config = replace(old.config, channels=24, deformable_groups=4, residual_blocks=3)
+    new = _grown(old, config).train()
+    spikes = (torch.rand(2, 41, 12, 16) < 0.4).float()
+    image, _ = new(spikes)
+    image.mean().backward()
+    head_conv = new.fusion.reconstruct[4].weight  # (1, c, 3, 3): the old 12 channels only
+    assert (head_conv[:, 12:] == 0).all() and head_conv.grad[:, 12:].abs().sum() > 0
+    cross = new.features.body[0].body[0].weight  # old outputs x new inputs
+    assert cross.grad[:12, 12:].abs().sum() > 0
+    added_block = new.features.body[2].body[2]  # the new block's last conv, at zero
+    assert (added_block.weight == 0).all() and added_block.weight.grad.abs().sum() > 0
+    torch.optim.SGD(new.parameters(), lr=0.1).step()
+    with torch.no_grad():
+        new.eval()(spikes)
+        moved = new.fusion.reconstruct[4].weight[:, 12:].abs().sum()
+    assert moved > 0
+
+
+@pytest.mark.parametrize(
+    ("change", "problem"),
+    [
+        ({"channels": 12, "deformable_groups": 2}, "channels, deformable_groups would shrink"),
+        ({"channels": 48, "deformable_groups": 4}, "channels per deformable group"),
+        ({"fusion_hidden": 64}, "fusion_hidden would shrink"),
+        ({"residual_blocks": 2}, "residual_blocks would shrink"),
+        ({"pyramid_levels": 2}, "pyramid_levels 3 -> 2"),
+        ({"sali_hidden": 32}, "sali_hidden 16 -> 32"),
+    ],
+)
+def test_what_cannot_grow_is_named(change, problem):
+    small = MEMBERS["small"]
+    config = replace(small, **change)
+    assert not grows_into(small, config)
+    assert any(problem in line for line in growth_problems(small, config))
+    with pytest.raises(ValueError, match=problem):
+        grow_weights(build_model(config), build_model("small").state_dict(), small)
+
+
+def test_equal_shapes_are_not_a_growth_and_bad_weights_are_refused():
+    small = MEMBERS["small"]
+    assert not grows_into(small, small) and growth_problems(small, small) == []
+    weights = build_model("small").state_dict()
+    with pytest.raises(ValueError, match="lacks: extra"):
+        grow_weights(build_model("medium"), weights | {"extra": torch.zeros(1)}, small)
+    missing = {k: v for k, v in weights.items() if not k.startswith("fusion.reconstruct.4")}
+    with pytest.raises(ValueError, match="no stored weights for fusion.reconstruct.4"):
+        grow_weights(build_model("medium"), missing, small)
