@@ -44,14 +44,14 @@ def test_small_grown_into_medium_computes_what_small_did():
     torch.manual_seed(0)
     old = _trained_looking("small")
     new = _grown(old, MEMBERS["medium"])
-    spikes = (torch.rand(2, 41, 19, 27) < 0.3).float()  # not a multiple of 4: padded inside
+    spikes = (torch.rand(1, 41, 13, 22) < 0.3).float()  # not a multiple of 4: padded inside
     _assert_same_outputs(old, new, spikes)
     fresh = build_model("medium").eval()
     with torch.no_grad():  # the check can fail: a network not grown computes something else
         assert (fresh(spikes)[0] - new.eval()(spikes)[0]).abs().max() > 1e-3
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=8, deadline=None)
 @given(
     factor=st.integers(1, 3),
     mask_extra=st.integers(0, 6),

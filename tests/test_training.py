@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from onnx_models import write_tiny_checkpoint
 from PIL import Image
 
 from spk2img.cli import main
@@ -18,6 +19,7 @@ from spk2img.evaluation.scoring import validation_set
 from spk2img.model.checkpoint import config_to_dict, load_checkpoint, load_model, save_checkpoint
 from spk2img.model.config import PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
+from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
 from spk2img.sim.simulator import SensorConfig
 from spk2img.sim.sources import load_photo
 from spk2img.training.data import Batches, SampleMaker
@@ -326,21 +328,21 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
         train(TrainConfig(steps=1, **TINY_RUN | {"run_dir": str(corrupt_run)}))
 
 
-def test_init_grows_small_into_medium(tmp_path):
-    """``--member medium --init`` a ``small`` checkpoint: the grown network's first loss is the
-    ``small`` network's on the same batch, and the run records what it grew from."""
-    source = tmp_path / "small"
-    small = TINY_RUN | {"member": "small", "val_every": 100}
-    train(TrainConfig(run_dir=str(source), steps=1, **small))
-    grown = tmp_path / "medium"
-    medium = small | {"member": "medium", "init": str(source / "last.pt")}
-    train(TrainConfig(run_dir=str(grown), steps=1, **medium))
+def test_init_grows_the_shipped_default_into_medium(tmp_path):
+    """``--member medium --init spk2img-default.pt`` (a ``small`` checkpoint): the grown
+    network's loss is the shipped model's on the same batch, and where the weights came from is
+    recorded; a checkpoint that cannot grow into ``medium`` is refused, naming why."""
+    medium = build_model("medium")
+    origin = load_initial_weights(medium, str(DEFAULT_CHECKPOINT))
+    assert origin["member"] == "small" and origin["path"] == str(DEFAULT_CHECKPOINT)
     spikes, truth = (torch.from_numpy(a) for a in SampleMaker(16, seed=0).batch(0, 2))
     with torch.no_grad():
-        expected = hierarchical_loss(*load_model(source / "last.pt").train()(spikes), truth)
-    assert _records(grown, "train")[0]["loss"] == pytest.approx(expected.item(), rel=1e-4)
-    state = load_checkpoint(grown / "last.pt")
-    assert state["member"] == "medium" and state["init_from"]["member"] == "small"
+        expected = hierarchical_loss(*load_model(DEFAULT_CHECKPOINT).train()(spikes), truth)
+        grown = hierarchical_loss(*medium.train()(spikes), truth)
+    assert grown.item() == pytest.approx(expected.item(), rel=1e-5)
+    tiny = write_tiny_checkpoint(tmp_path / "tiny.pt")
+    with pytest.raises(InputError, match="cannot grow into: only the widths .*pyramid_levels"):
+        load_initial_weights(build_model("medium"), str(tiny))
 
 
 @pytest.mark.parametrize(
