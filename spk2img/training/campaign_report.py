@@ -17,12 +17,13 @@ from collections import defaultdict
 from pathlib import Path
 
 from spk2img.markdown import table_head, table_row
+from spk2img.model.config import MEMBERS
 
 from .campaign import THEN, VALIDATIONS, Run, RunSettings, lineage, load_campaign, samples_before
 
 GENERATED = ("# Training campaign", "## By member and hardware", "## Runs", "## Curves")
 METRIC_LABELS = {name: f"{words} (dB)" for name, (_, _, words) in VALIDATIONS.items()}
-MEMBER_ORDER = ("paper", "small", "lite", "cpu", "tiny")
+MEMBER_ORDER = tuple(MEMBERS)  # largest first
 
 
 def hardware_name(settings: RunSettings) -> str:
