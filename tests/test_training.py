@@ -450,7 +450,7 @@ def test_train_help_gives_every_flag_its_default_and_a_run_ends_with_a_summary(t
     with pytest.raises(SystemExit):
         main(["train", "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
-    assert "(choices: paper, small, lite, cpu, tiny; default: tiny)" in help_text
+    assert "(choices: paper, medium, small, lite, cpu, tiny; default: tiny)" in help_text
     assert "(choices: l1, psnr; default: l1)" in help_text and "(default: 20000)" in help_text
     run = tmp_path / "run"
     flags = "--member tiny --steps 2 --patch 16 --batch-size 2 --val-every 2 --val-per-class 1"
