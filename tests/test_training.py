@@ -16,7 +16,13 @@ from PIL import Image
 from spk2img.cli import main
 from spk2img.errors import InputError
 from spk2img.evaluation.scoring import validation_set
-from spk2img.model.checkpoint import config_to_dict, load_checkpoint, load_model, save_checkpoint
+from spk2img.model.checkpoint import (
+    config_to_dict,
+    load_checkpoint,
+    load_model,
+    release_checkpoint,
+    save_checkpoint,
+)
 from spk2img.model.config import PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
@@ -326,6 +332,14 @@ def test_init_starts_a_run_from_another_runs_weights(tmp_path):
     (corrupt_run / "last.pt").write_bytes((source / "last.pt").read_bytes()[:1000])
     with pytest.raises(InputError, match="last.pt: not a spk2img training checkpoint"):
         train(TrainConfig(steps=1, **TINY_RUN | {"run_dir": str(corrupt_run)}))
+    weights_only = tmp_path / "weights-only"  # a committed state without Adam's moments
+    release_checkpoint(source / "last.pt", weights_only / "last.pt")
+    with pytest.raises(InputError, match="weights only, no optimiser state.*--init"):
+        train(TrainConfig(steps=4, **TINY_RUN | {"run_dir": str(weights_only)}))
+    tuned_on = TINY_RUN | {"run_dir": str(tmp_path / "on"), "init": str(weights_only / "last.pt")}
+    train(TrainConfig(steps=1, **tuned_on))  # what the message says works
+    resumed = load_checkpoint(tmp_path / "on" / "last.pt")
+    assert resumed["step"] == 1 and resumed["init_from"]["path"] == str(weights_only / "last.pt")
 
 
 def test_init_grows_the_shipped_default_into_medium(tmp_path):

@@ -162,6 +162,11 @@ def train(cfg: TrainConfig) -> dict:
                 f"{last} holds another shape than --member {cfg.member} has now: continue it "
                 "with the code that started it, or train in a new --run-dir"
             )
+        if "optimizer" not in state:
+            raise InputError(
+                f"{last} holds weights only, no optimiser state to resume: start a new run "
+                f"from it with --init {last} (and another --run-dir)"
+            )
         load_weights(model, state, last)
         optimizer.load_state_dict(state["optimizer"])
         start, wall = int(state["step"]), float(state["wall_s"])
