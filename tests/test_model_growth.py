@@ -133,3 +133,6 @@ def test_equal_shapes_are_not_a_growth_and_bad_weights_are_refused():
     missing = {k: v for k, v in weights.items() if not k.startswith("fusion.reconstruct.4")}
     with pytest.raises(ValueError, match="no stored weights for fusion.reconstruct.4"):
         grow_weights(build_model("medium"), missing, small)
+    old_block = {k: v for k, v in weights.items() if not k.startswith("features.body.1.")}
+    with pytest.raises(ValueError, match="no stored weights for features.body.1.body.0"):
+        grow_weights(build_model("medium"), old_block, small)

@@ -24,11 +24,15 @@ from __future__ import annotations
 
 import dataclasses
 import re
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
 
 from .config import Spk2ImgNetConfig
+
+if TYPE_CHECKING:
+    from .network import Spk2ImgNet
 
 GROWN_FIELDS = ("channels", "deformable_groups", "reliability_hidden", "fusion_hidden")
 """Widths that may grow (none may shrink); ``residual_blocks`` may grow too."""
@@ -89,7 +93,9 @@ def grows_into(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
 
 
 @torch.no_grad()
-def grow_weights(model: nn.Module, weights: dict[str, torch.Tensor], stored: Spk2ImgNetConfig):
+def grow_weights(
+    model: Spk2ImgNet, weights: dict[str, torch.Tensor], stored: Spk2ImgNetConfig
+) -> None:
     """Load the weights ``weights`` of a network of config ``stored`` into ``model``, a freshly
     initialised network it grows into (:func:`grows_into`), so that ``model`` computes what the
     stored network did (module docstring). Raises ``ValueError`` naming what does not fit."""
@@ -102,9 +108,10 @@ def grow_weights(model: nn.Module, weights: dict[str, torch.Tensor], stored: Spk
     if unknown:
         raise ValueError(f"weights the grown network lacks: {', '.join(unknown[:3])}")
     for name, target in own.items():
+        added_block = re.fullmatch(r"features\.body\.(\d+)\.body\.\d+\.(weight|bias)", name)
         if name in weights:
             _place(name, target, weights[name], stored, config)
-        elif not re.fullmatch(r"features\.body\.\d+\.body\.\d+\.(weight|bias)", name):
+        elif not (added_block and int(added_block[1]) >= stored.residual_blocks):
             raise ValueError(f"no stored weights for {name}")
     last = f"body.{2 * (config.convs_per_block - 1)}"  # the last conv of a residual block
     for block in list(model.features.body)[stored.residual_blocks :]:
