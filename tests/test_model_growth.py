@@ -8,21 +8,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from spk2img.export.onnx_export import random_source
 from spk2img.model.config import MEMBERS
-from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.model.growth import grow_weights, grows_into, growth_problems
 from spk2img.model.network import build_model
-
-
-def _trained_looking(member) -> torch.nn.Module:
-    """A network with random weights everywhere, the offset predictors included (they start at
-    zero in a fresh one, which would leave the deformable sampling untested)."""
-    model = build_model(member)
-    for module in model.modules():
-        if isinstance(module, ModulatedDeformConv2d):
-            torch.nn.init.normal_(module.conv_offset_mask.weight, std=0.05)
-            torch.nn.init.normal_(module.conv_offset_mask.bias, std=0.5)
-    return model
 
 
 def _grown(old, config) -> torch.nn.Module:
@@ -42,7 +31,7 @@ def _assert_same_outputs(old, new, spikes) -> None:
 
 def test_small_grown_into_medium_computes_what_small_did():
     torch.manual_seed(0)
-    old = _trained_looking("small")
+    old = random_source("small", seed=0).model  # offsets random too: the sampling moves
     new = _grown(old, MEMBERS["medium"])
     spikes = (torch.rand(1, 41, 13, 22) < 0.3).float()  # not a multiple of 4: padded inside
     _assert_same_outputs(old, new, spikes)
@@ -75,7 +64,7 @@ def test_any_growth_of_widths_and_depth_computes_what_the_network_did(
         residual_blocks=tiny.residual_blocks + blocks_extra,
     )
     torch.manual_seed(seed)
-    old = _trained_looking("tiny")
+    old = random_source("tiny", seed=seed).model
     assert grows_into(tiny, config) or config == tiny
     new = _grown(old, config)
     _assert_same_outputs(old, new, (torch.rand(1, 41, 10, 14) < 0.4).float())
@@ -85,7 +74,7 @@ def test_the_new_width_learns():
     """The zeros that keep the old channels from reading the new ones get gradients at once,
     and the new channels reach the image after one update."""
     torch.manual_seed(1)
-    old = _trained_looking("tiny")
+    old = random_source("tiny", seed=1).model
     config = replace(old.config, channels=24, deformable_groups=4, residual_blocks=3)
     new = _grown(old, config).train()
     spikes = (torch.rand(2, 41, 12, 16) < 0.4).float()

@@ -30,16 +30,13 @@ import torch
 from torch import nn
 
 from .config import Spk2ImgNetConfig
+from .deform_conv import ModulatedDeformConv2d
 
 if TYPE_CHECKING:
     from .network import Spk2ImgNet
 
 GROWN_FIELDS = ("channels", "deformable_groups", "reliability_hidden", "fusion_hidden")
 """Widths that may grow (none may shrink); ``residual_blocks`` may grow too."""
-
-TAPS = 9
-"""Taps of every 3x3 deformable conv: offsets are ``2 * TAPS`` channels a group, mask logits
-``TAPS``."""
 
 # the channel layout of each grown weight, (output, input), by parameter name; a layout names
 # the widths whose tensors are concatenated along that axis: "c" the feature channels, "c*" as
@@ -127,12 +124,12 @@ def _place(
     config: Spk2ImgNetConfig,
 ) -> None:
     """Write one stored tensor into its place in the grown network's ``target`` (in place)."""
-    layout = _layout(name)
-    if layout is None or old.shape == target.shape:
-        if old.shape != target.shape:
-            raise ValueError(f"{name}: {tuple(old.shape)} cannot grow into {tuple(target.shape)}")
+    if old.shape == target.shape:
         target.copy_(old)
         return
+    layout = _layout(name)
+    if layout is None:
+        raise ValueError(f"{name}: {tuple(old.shape)} cannot grow into {tuple(target.shape)}")
     if old.dim() not in (1, 4):
         raise ValueError(f"{name}: a {old.dim()}-d tensor does not grow")
     out_layout, in_layout = layout
@@ -181,10 +178,11 @@ def _positions(
 
 
 def _width(part: str, config: Spk2ImgNetConfig) -> int:
+    taps = ModulatedDeformConv2d.kernel_size**2  # offsets: (dy, dx) a tap; mask logits: one
     return {
         "c": config.channels,
         "rh": config.reliability_hidden,
         "fh": config.fusion_hidden,
-        "offsets": 2 * TAPS * config.deformable_groups,
-        "mask": TAPS * config.deformable_groups,
+        "offsets": 2 * taps * config.deformable_groups,
+        "mask": taps * config.deformable_groups,
     }[part]
