@@ -16,8 +16,12 @@ Deepening: the feature extractor's new residual blocks, appended after the old o
 their last conv at zero: ``relu(x + 0)`` is ``x`` for the non-negative features they receive.
 
 Deformable groups keep their channel count (``channels / deformable_groups``), so every old
-channel stays in its old offset group. SALI, the detail refinement and the blocks' geometry do
-not change.
+channel stays in its old offset group. SALI and the blocks' geometry do not change.
+
+The detail refinement (members whose fusion runs at reduced size) may be added, widened,
+deepened or aligned, and the blocks' motion may come to guide the alignment
+(:meth:`~spk2img.model.detail.DetailRefinement.grow_from`): a refinement added or grown
+starts adding nothing new, and the motion adds nothing on a still scene.
 """
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ if TYPE_CHECKING:
 
 GROWN_FIELDS = ("channels", "deformable_groups", "reliability_hidden", "fusion_hidden")
 """Widths that may grow (none may shrink); ``residual_blocks`` may grow too."""
+
+DETAIL_FIELDS = ("detail_hidden", "detail_depth", "detail_aligned", "flow_guided")
+"""The detail refinement's shape and the motion's use, which may grow too."""
 
 # the channel layout of each grown weight, (output, input), by parameter name; a layout names
 # the widths whose tensors are concatenated along that axis: "c" the feature channels, "c*" as
@@ -61,20 +68,25 @@ LAYOUTS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
 
 def growth_problems(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> list[str]:
     """Why ``stored`` cannot grow into ``config`` (empty where it can, or where they are equal):
-    only :data:`GROWN_FIELDS` and ``residual_blocks`` may differ, none may shrink, and a
-    deformable group keeps its channel count."""
+    only :data:`GROWN_FIELDS`, ``residual_blocks`` and :data:`DETAIL_FIELDS` may differ, none
+    may shrink, and a deformable group keeps its channel count."""
     grown = (*GROWN_FIELDS, "residual_blocks")
     changed = [
         f"{field.name} {getattr(stored, field.name)} -> {getattr(config, field.name)}"
         for field in dataclasses.fields(config)
-        if field.name not in grown and getattr(config, field.name) != getattr(stored, field.name)
+        if field.name not in (*grown, *DETAIL_FIELDS)
+        and getattr(config, field.name) != getattr(stored, field.name)
     ]
     problems = []
     if changed:
-        problems.append(f"only the widths and residual_blocks can grow ({', '.join(changed)})")
+        problems.append(
+            "only the widths, residual_blocks and the detail refinement can grow "
+            f"({', '.join(changed)})"
+        )
     shrunk = [name for name in grown if getattr(config, name) < getattr(stored, name)]
     if shrunk:
         problems.append(f"{', '.join(shrunk)} would shrink")
+    problems += _detail_problems(stored, config)
     if config.channels * stored.deformable_groups != stored.channels * config.deformable_groups:
         problems.append(
             "channels per deformable group change "
@@ -84,9 +96,20 @@ def growth_problems(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> list[
     return problems
 
 
-def grows_into(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
-    """Whether weights of ``stored`` grow into a network of ``config`` (another shape)."""
-    return stored != config and not growth_problems(stored, config)
+def _detail_problems(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> list[str]:
+    """Why ``stored``'s detail refinement and use of motion cannot grow into ``config``'s: the
+    refinement may be added, widened, deepened and aligned, and the motion may come to guide
+    the alignment, none of them undone."""
+    if stored.detail_hidden and not config.detail_hidden:
+        return ["the detail refinement would be removed"]
+    undone = [
+        name
+        for name in ("detail_hidden", "detail_aligned", "flow_guided")
+        if getattr(config, name) < getattr(stored, name)
+    ]
+    if stored.detail_hidden and config.detail_depth < stored.detail_depth:
+        undone.append("detail_depth")
+    return [f"{', '.join(undone)} would shrink"] if undone else []
 
 
 @torch.no_grad()
@@ -94,8 +117,9 @@ def grow_weights(
     model: Spk2ImgNet, weights: dict[str, torch.Tensor], stored: Spk2ImgNetConfig
 ) -> None:
     """Load the weights ``weights`` of a network of config ``stored`` into ``model``, a freshly
-    initialised network it grows into (:func:`grows_into`), so that ``model`` computes what the
-    stored network did (module docstring). Raises ``ValueError`` naming what does not fit."""
+    initialised network it grows into (:func:`growth_problems` names nothing), so that ``model``
+    computes what the stored network did (module docstring). Raises ``ValueError`` naming what
+    does not fit."""
     config = model.config
     problems = growth_problems(stored, config)
     if problems:
@@ -104,7 +128,15 @@ def grow_weights(
     unknown = sorted(set(weights) - set(own))
     if unknown:
         raise ValueError(f"weights the grown network lacks: {', '.join(unknown[:3])}")
+    detail = {k.removeprefix("detail."): v for k, v in weights.items() if k.startswith("detail.")}
+    if detail:
+        try:
+            model.detail.grow_from(detail)
+        except (KeyError, ValueError, RuntimeError) as exc:
+            raise ValueError(f"the detail refinement does not fit: {exc}") from exc
     for name, target in own.items():
+        if name.startswith("detail."):
+            continue  # grown above, or added: it starts adding nothing (its last conv is zero)
         added_block = re.fullmatch(r"features\.body\.(\d+)\.body\.\d+\.(weight|bias)", name)
         if name in weights:
             _place(name, target, weights[name], stored, config)

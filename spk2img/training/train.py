@@ -32,8 +32,8 @@ from spk2img.model.checkpoint import (
     save_checkpoint,
     stored_config,
 )
-from spk2img.model.config import Spk2ImgNetConfig, get_config
-from spk2img.model.growth import grow_weights, grows_into, growth_problems
+from spk2img.model.config import get_config
+from spk2img.model.growth import grow_weights
 from spk2img.model.network import Spk2ImgNet
 from spk2img.provenance import git_commit
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
@@ -357,43 +357,21 @@ def train(cfg: TrainConfig) -> dict:
 
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
     """Load the weights of checkpoint ``path`` into ``model`` (the same shape, or one the
-    checkpoint's network grows into: its detail refinement, :func:`grows_detail`, or its widths
-    and depth, :func:`~spk2img.model.growth.grows_into`) and return where they came from: the
-    path, the run that wrote it (its run folder's name, where the checkpoint records one), and
-    the step, wall time, member and commit that trained them."""
+    checkpoint's network grows into: :mod:`spk2img.model.growth`) and return where they came
+    from: the path, the run that wrote it (its run folder's name, where the checkpoint records
+    one), and the step, wall time, member and commit that trained them."""
     state = load_checkpoint(path)
     stored = stored_config(state, path)
     if stored == model.config:
         load_weights(model, state, path)
-    elif grows_detail(stored, model.config):
-        # the member grown by (or in) the detail refinement: it starts as the checkpoint's net
-        weights = state["model"]
-        rest = {key: value for key, value in weights.items() if not key.startswith("detail.")}
-        missing, unexpected = model.load_state_dict(rest, strict=False)
-        if unexpected or any(not key.startswith("detail.") for key in missing):
-            raise InputError(f"--init {path}: its weights do not fit the member being trained")
-        detail = {k[len("detail.") :]: v for k, v in weights.items() if k.startswith("detail.")}
-        if detail:
-            try:
-                model.detail.grow_from(detail)
-            except (KeyError, ValueError, RuntimeError) as exc:
-                raise InputError(
-                    f"--init {path}: its detail refinement does not fit: {exc}"
-                ) from exc
-    elif grows_into(stored, model.config):
-        # a narrower or shallower member grown into this one: it starts as the checkpoint's net
+    else:  # a narrower or shallower member: it starts computing what the checkpoint's did
         try:
             grow_weights(model, state["model"], stored)
         except ValueError as exc:
             raise InputError(
-                f"--init {path}: its weights do not grow into this member: {exc}"
+                f"--init {path}: another shape than the member being trained, which it cannot "
+                f"grow into: {exc}"
             ) from exc
-    else:
-        problems = growth_problems(stored, model.config)
-        raise InputError(
-            f"--init {path}: another shape than the member being trained, which it cannot grow "
-            f"into: {'; '.join(problems)}"
-        )
     run_dir = state.get("train_config", {}).get("run_dir")
     return {
         "path": str(path),
@@ -403,28 +381,6 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
         "wall_s": float(state.get("wall_s", 0.0)),
         "commit": state.get("commit", "unknown"),
     }
-
-
-def grows_detail(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> bool:
-    """Whether ``config`` is ``stored`` with a detail refinement added, widened, deepened or
-    aligned, or its motion guiding the alignment (none adds weights beyond
-    :meth:`~spk2img.model.detail.DetailRefinement.grow_from`'s)."""
-    same_rest = stored == dataclasses.replace(
-        config,
-        detail_hidden=stored.detail_hidden,
-        detail_depth=stored.detail_depth,
-        detail_aligned=stored.detail_aligned,
-        flow_guided=stored.flow_guided,
-    )
-    return (
-        same_rest
-        and stored != config
-        and config.detail_hidden > 0
-        and stored.detail_hidden <= config.detail_hidden
-        and (stored.detail_hidden == 0 or stored.detail_depth <= config.detail_depth)
-        and stored.detail_aligned <= config.detail_aligned
-        and stored.flow_guided <= config.flow_guided
-    )
 
 
 def describe_hardware(device: torch.device, threads: int, bf16: bool) -> str:
