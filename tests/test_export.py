@@ -42,6 +42,7 @@ from spk2img.model.checkpoint import (
     load_model,
     save_checkpoint,
 )
+from spk2img.model.config import MEMBERS
 from spk2img.model.deform_conv import ModulatedDeformConv2d
 from spk2img.runtime.block_codec import block_graph_paths
 from spk2img.runtime.onnx_backend import OnnxModel, shipped_models
@@ -305,12 +306,12 @@ def test_bilinear_sampling_is_traced_as_one_op_and_nothing_else_is():
 
 
 def test_paper_width_exports_as_deform_conv_nodes_and_verifies(tmp_path, monkeypatch):
-    """The published width and depth (64 channels, 8 deformable groups, 10 residual blocks)
-    traced with each deformable conv as one standard ``DeformConv`` node (opset 19, where the
-    other tests trace the ``GridSample`` graph, the same code for every member), verified
-    against torch like every export: on the hard cases, then at two more sizes. Offered a
-    reused graph that computes another network (here the shipped ``default``'s), the export
-    traces after all."""
+    """The published width (64 channels, 8 deformable groups, the three-level pyramid; two of
+    its ten residual blocks: the others add more of the same convs) traced with each deformable
+    conv as one standard ``DeformConv`` node (opset 19, where the other tests trace the
+    ``GridSample`` graph, the same code for every member), verified against torch like every
+    export: on the hard cases, then at two more sizes. Offered a reused graph that computes
+    another network (here the shipped ``default``'s), the export traces after all."""
     shipped = shipped_models()["default"]
 
     def wrong_reuse(template, source, out, config, block_graphs):
@@ -319,7 +320,7 @@ def test_paper_width_exports_as_deform_conv_nodes_and_verifies(tmp_path, monkeyp
 
     monkeypatch.setattr(pipeline, "find_template", lambda *args: shipped)
     monkeypatch.setattr(pipeline, "reuse_graphs", wrong_reuse)
-    source = random_source("paper", seed=0)
+    source = random_source(dataclasses.replace(MEMBERS["paper"], residual_blocks=2), seed=0)
     config = dataclasses.replace(EXAMPLE, graph="deform_conv")
     result = export_verified(source, tmp_path / "paper.onnx", config, block_graphs=False)
     assert result.reused is None
