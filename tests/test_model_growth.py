@@ -160,3 +160,12 @@ def test_a_detail_refinement_undone_is_named(change, problem):
     config = replace(cpu, **change)
     assert growth_problems(config, cpu) == []
     assert any(problem in line for line in growth_problems(cpu, config))
+
+
+def test_a_checkpoint_without_its_detail_refinement_is_refused():
+    """Weights of a ``cpu`` that had a refinement but lack it are not taken for one without."""
+    cpu = MEMBERS["cpu"]
+    stored = replace(cpu, detail_hidden=24, detail_depth=1)
+    cut = {k: v for k, v in build_model(stored).state_dict().items() if not k.startswith("detail.")}
+    with pytest.raises(ValueError, match="no stored weights for the detail refinement"):
+        grow_weights(build_model(cpu), cut, stored)

@@ -129,6 +129,8 @@ def grow_weights(
     if unknown:
         raise ValueError(f"weights the grown network lacks: {', '.join(unknown[:3])}")
     detail = {k.removeprefix("detail."): v for k, v in weights.items() if k.startswith("detail.")}
+    if stored.detail_hidden and not detail:
+        raise ValueError("no stored weights for the detail refinement")
     if detail:
         try:
             model.detail.grow_from(detail)
