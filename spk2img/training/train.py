@@ -364,7 +364,7 @@ def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
     stored = stored_config(state, path)
     if stored == model.config:
         load_weights(model, state, path)
-    else:  # a narrower or shallower member: it starts computing what the checkpoint's did
+    else:  # another shape: grown (it starts computing what the checkpoint's did) or refused
         try:
             grow_weights(model, state["model"], stored)
         except ValueError as exc:
