@@ -8,6 +8,7 @@ only, so the receiving machine needs nothing installed::
     python -m spk2img.parts split FILE --out DIR [--part-mib 40]
     python -m spk2img.parts collect DIR/FILE.parts.json --into /tmp/parts
     python -m spk2img.parts join /tmp/parts/FILE.parts.json --out FILE
+    python -m spk2img.parts room [CHECKOUT]   # MiB a command carries beside the checkout
 
 ``split`` writes ``FILE.part-000``, ``FILE.part-001`` ... and ``FILE.parts.json`` (the name,
 size and SHA-256 of the file and of every part). ``collect`` copies the manifest and the parts
@@ -20,13 +21,20 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
+import os
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
 MIB = 2**20
 DEFAULT_PART_MIB = 40
-"""Part size: 40 MiB leave 24 MiB of a 64 MiB command for the repository."""
+"""Part size where none is given (``room`` says what fits beside a checkout)."""
+COMMAND_MIB = 64
+"""What a lent GPU machine receives a command: the working tree, and the files carried."""
+MARGIN_MIB = 1
+"""Kept free of a command by ``room``: a part's manifest, files the session writes."""
 CHUNK = 4 * MIB
 
 
@@ -148,6 +156,29 @@ def join(manifest_file: Path, out: Path, folder: Path | None = None) -> Path:
     return out
 
 
+def travelling_bytes(checkout: Path) -> int:
+    """The bytes of git checkout ``checkout`` that travel with every command to a lent
+    machine: its tracked files and the untracked ones git does not ignore (a link as a link);
+    :class:`PartsError` where it is not a checkout."""
+    listed = subprocess.run(
+        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+        cwd=checkout,
+        capture_output=True,
+    )
+    if listed.returncode:
+        raise PartsError(f"{checkout}: not a git checkout ({os.fsdecode(listed.stderr).strip()})")
+    listing = listed.stdout
+    files = {Path(checkout, name) for name in os.fsdecode(listing).split("\0") if name}
+    return sum(f.lstat().st_size for f in files if f.is_file() or f.is_symlink())
+
+
+def room_mib(checkout: Path) -> float:
+    """MiB a command can carry beside the checkout (:data:`COMMAND_MIB` less what travels
+    with it and :data:`MARGIN_MIB`), rounded down to a tenth."""
+    free = COMMAND_MIB - MARGIN_MIB - travelling_bytes(checkout) / MIB
+    return max(0.0, math.floor(free * 10) / 10)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m spk2img.parts", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -161,9 +192,13 @@ def main(argv: list[str] | None = None) -> int:
     whole = sub.add_parser("join", help="check the parts and join them")
     whole.add_argument("manifest", type=Path)
     whole.add_argument("--out", type=Path, required=True)
+    free = sub.add_parser("room", help=f"MiB a {COMMAND_MIB} MiB command carries beside a checkout")
+    free.add_argument("checkout", type=Path, nargs="?", default=Path("."))
     args = parser.parse_args(argv)
     try:
-        if args.command == "split":
+        if args.command == "room":
+            print(f"{room_mib(args.checkout):.1f}")
+        elif args.command == "split":
             path = split(args.file, args.out, int(args.part_mib * MIB))
             count = len(read_manifest(path)["parts"])
             print(f"{args.file} -> {count} parts, manifest {path}")

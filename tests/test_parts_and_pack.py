@@ -21,7 +21,7 @@ from spk2img import parts as parts_module
 from spk2img.cli import main
 from spk2img.parts import PartsError, collect, join, missing, read_manifest, split
 from spk2img.sim.sources import SourceIndex
-from spk2img.training.pack import PACK_NAME
+from spk2img.training.pack import ARCHIVE_BYTES, ENTRY_BYTES, PACK_NAME, pack_training_data
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "receive_parts.sh"
@@ -74,6 +74,38 @@ def test_a_missing_or_damaged_part_is_named_and_never_joined(tmp_path, capsys):
     done = subprocess.run([*command, "--out", "x"], capture_output=True, text=True)
     assert done.returncode == 2 and "not a parts manifest" in done.stderr
     assert done.stderr.count("\n") == 1
+
+
+def test_room_is_what_a_command_carries_beside_the_files_that_travel(tmp_path):
+    """Tracked files and untracked ones git does not ignore travel; ignored ones do not."""
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], cwd=repo, check=True)
+    (repo / ".gitignore").write_text("pack/\n")
+    (repo / "tracked.bin").write_bytes(bytes(3 * 2**20))
+    subprocess.run([*git, "add", "."], cwd=repo, check=True)
+    subprocess.run([*git, "commit", "-qm", "x"], cwd=repo, check=True)
+    (repo / "new.bin").write_bytes(bytes(2**20))  # untracked, not ignored: travels
+    (repo / "pack").mkdir()
+    (repo / "pack" / "part").write_bytes(bytes(5 * 2**20))  # ignored: carried when named
+    assert parts_module.travelling_bytes(repo) == 4 * 2**20 + len("pack/\n")
+    assert parts_module.room_mib(repo) == pytest.approx(
+        58.9
+    )  # 64 - 1 - 4 MiB and 7 bytes, rounded down
+    done = subprocess.run(
+        [sys.executable, "-m", "spk2img.parts", "room", str(tmp_path)],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 2 and "not a git checkout" in done.stderr
+
+
+@pytest.mark.skipif(not (REPO / ".git").exists(), reason="not a git checkout")
+def test_this_checkout_leaves_room_for_a_training_pack_in_one_command():
+    """A lent GPU machine receives 64 MiB a command, this checkout included: the compact
+    training pack (``pack-data --max-mib``, docs/gpu.md) needs 20 MiB of them."""
+    assert parts_module.room_mib(REPO) >= 20
 
 
 @pytest.fixture
@@ -149,6 +181,91 @@ def test_the_pack_can_leave_the_held_out_sources_out_and_refuses_bad_input(
     assert main(["pack-data", "--data", str(data_dir), "--part-mib", "nan"]) == 2
     err = capsys.readouterr().err
     assert "not a folder" in err and "--part-mib 0" in err and "--part-mib nan" in err
+
+
+@pytest.fixture(scope="module")
+def collection(tmp_path_factory):
+    """Nine photos of different sizes, three clips of 5, 8 and 12 frames, a held-out photo."""
+    root = tmp_path_factory.mktemp("collection") / "train"
+    rng = np.random.default_rng(2)
+    (root / "photos").mkdir(parents=True)
+    for k in range(9):
+        pixels = rng.integers(0, 256, (40 + 4 * k, 48), np.uint8)
+        Image.fromarray(pixels).save(root / "photos" / f"p{k}.png")
+    Image.fromarray(rng.integers(0, 256, (40, 40), np.uint8)).save(
+        root / "photos" / "kodak24_kodim08.png"
+    )
+    for name, frames in (("a", 5), ("b", 8), ("c", 12)):
+        (root / "video" / name).mkdir(parents=True)
+        for k in range(frames):
+            pixels = rng.integers(0, 256, (36, 44), np.uint8)
+            Image.fromarray(pixels).save(root / "video" / name / f"{k:05d}.png")
+    (root / "MANIFEST.md").write_text("sources and licences\n")
+    return root
+
+
+@settings(max_examples=25, deadline=None)
+@given(max_kib=st.floats(2, 80))
+def test_a_pack_within_max_mib_keeps_whole_files_and_the_most_that_fits(
+    collection, tmp_path_factory, max_kib
+):
+    """``--max-mib``: the archive is never larger; what it holds is byte for byte the source's;
+    each clip keeps its first frames (3 at least: it stays a clip) or is left out, the photos
+    are every k-th, and the next larger choice would not have fitted; the held-out photo and
+    the manifest are always there. Too little room for any training source is refused."""
+    out = tmp_path_factory.mktemp("compact")
+    max_mib = max_kib / 1024
+
+    def cost(files):
+        return sum((collection.parent / f).stat().st_size + ENTRY_BYTES for f in files)
+
+    room = max_mib * 2**20 - ARCHIVE_BYTES - cost(["train/photos/kodak24_kodim08.png"])
+    room -= cost(["train/MANIFEST.md"])
+    try:
+        record = pack_training_data([collection], out, part_mib=1, max_mib=max_mib)
+    except ValueError as exc:
+        assert "too little for any training source" in str(exc)
+        assert min(cost([f"train/photos/p{k}.png"]) for k in range(9)) > room
+        return
+    assert record["bytes"] <= max_mib * 2**20
+    assert record["validation"] == {"kodak24_kodim08.png": ["train/photos/kodak24_kodim08.png"]}
+    archive = join(Path(record["manifest"]), out / "joined.zip")
+    with zipfile.ZipFile(archive) as z:
+        for name in z.namelist():
+            if name != "PACK.json":
+                assert z.read(name) == (collection.parent / name).read_bytes()
+        assert "train/MANIFEST.md" in z.namelist()
+    kept = record["compact"]
+    photos = sorted(n for n in record["train"] if n.endswith(".png"))
+    clips = {n: record["train"][n] for n in record["train"] if not n.endswith(".png")}
+    every = kept["photos"]["every"]
+    if every:
+        assert photos == [f"p{k}.png" for k in range(0, 9, every)]
+    if every != 1:  # one photo more in the spread would not have fitted beside the clips
+        closer = range(0, 9, every - 1) if every else [0]  # p0: the smallest photo
+        clip_bytes = cost(f for frames in record["train"].values() for f in frames if "video" in f)
+        assert cost(f"train/photos/p{k}.png" for k in closer) > room - clip_bytes
+    for name, frames in clips.items():
+        expected = [f"train/video/{name}/{k:05d}.png" for k in range(len(frames))]
+        assert frames == expected and len(frames) >= 3
+    if kept["clip_frames"]:  # cut: one more frame each would not have fitted half the room
+        assert all(len(f) <= kept["clip_frames"] for f in clips.values())
+    assert kept["photos"]["kept"] == len(photos) and kept["clips"]["kept"] == len(clips)
+
+
+def test_pack_data_says_what_a_compact_pack_kept(collection, tmp_path, capsys):
+    pack = tmp_path / "pack"
+    args = ["pack-data", "--data", str(collection), "--out", str(pack), "--max-mib", "0.05"]
+    assert main(args) == 0
+    said = capsys.readouterr().out
+    assert "within 0.05 MiB: 3 of 3 clips (all, their first " in said and " of 9 photos (" in said
+    assert sum(p["size"] for p in read_manifest(pack / f"{PACK_NAME}.parts.json")["parts"]) <= (
+        0.05 * 2**20
+    )
+    assert main([*args[:-1], "0.001"]) == 2
+    assert main([*args[:-1], "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "too little for any training source" in err and "--max-mib -1: must be" in err
 
 
 def test_the_receiving_script_gathers_a_part_per_command_and_unpacks_the_last(tmp_path):

@@ -30,6 +30,16 @@ def stream(tmp_path_factory):
     return path
 
 
+@pytest.fixture(autouse=True)
+def ctrl_c_raises():
+    """SIGINT raises ``KeyboardInterrupt``, as in a terminal, also where pytest started with it
+    ignored (a script's background job, ``cmd &``, inherits SIGINT ignored and Python keeps it
+    so: the interrupted runs below would then run to their end)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def interrupt_after(monkeypatch, frames: int, stop: signal.Signals = signal.SIGINT) -> None:
     """Make the run receive ``stop`` (Ctrl-C's SIGINT, or SIGTERM) once ``frames`` frames have
     been kept."""

@@ -359,6 +359,31 @@ def test_init_grows_the_shipped_default_into_medium(tmp_path):
         load_initial_weights(build_model("medium"), str(tiny))
 
 
+def test_fp16_weights_start_a_run_as_the_weights_they_round(tmp_path):
+    """A larger member's state is committed as fp16 weights alone (half the bytes):
+    ``--init`` loads them into the fp32 network exactly as rounded, into the same member and
+    grown into a wider one, and the grown network's loss is the fp16 checkpoint's."""
+    half = tmp_path / "default-fp16.pt"
+    release_checkpoint(DEFAULT_CHECKPOINT, half, torch.float16)
+    stored = load_checkpoint(half)["model"]
+    assert {t.dtype for t in stored.values() if t.is_floating_point()} == {torch.float16}
+    assert half.stat().st_size < 0.6 * DEFAULT_CHECKPOINT.stat().st_size
+    small = build_model("small")
+    load_initial_weights(small, str(half))
+    for name, tensor in small.state_dict().items():
+        assert tensor.dtype == torch.float32
+        torch.testing.assert_close(tensor, stored[name].to(tensor.dtype), rtol=0, atol=0)
+    medium = build_model("medium")
+    load_initial_weights(medium, str(half))
+    spikes, truth = (torch.from_numpy(a) for a in SampleMaker(16, seed=1).batch(0, 2))
+    with torch.no_grad():
+        expected = hierarchical_loss(*small.train()(spikes), truth)
+        grown = hierarchical_loss(*medium.train()(spikes), truth)
+        shipped = hierarchical_loss(*load_model(DEFAULT_CHECKPOINT).train()(spikes), truth)
+    assert grown.item() == pytest.approx(expected.item(), rel=1e-5)
+    assert grown.item() != shipped.item() and grown.item() == pytest.approx(shipped.item(), 1e-2)
+
+
 @pytest.mark.parametrize(
     "detail",
     [(0, 1, False), (24, 1, True), (48, 2, False)],

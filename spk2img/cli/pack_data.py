@@ -27,6 +27,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("pack"), help="folder of the parts")
     p.add_argument("--part-mib", type=float, default=DEFAULT_PART_MIB, help="largest part, in MiB")
     p.add_argument(
+        "--max-mib",
+        type=float,
+        metavar="MIB",
+        help="pack a subset of the training sources (each file whole) so that the pack is at "
+        "most MIB: the first frames of every clip and every k-th photo (docs/gpu.md)",
+    )
+    p.add_argument(
         "--no-validation",
         dest="validation",
         action="store_false",
@@ -35,15 +42,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from spk2img.training.pack import pack_training_data
+    from spk2img.training.pack import describe_compact, pack_training_data
 
     for folder in args.data:
         if not Path(folder).is_dir():
             raise InputError(f"--data {folder}: not a folder")
-    if not 0 < args.part_mib < math.inf:
-        raise InputError(f"--part-mib {args.part_mib}: must be a number > 0")
+    for flag, value in (("--part-mib", args.part_mib), ("--max-mib", args.max_mib)):
+        if value is not None and not 0 < value < math.inf:
+            raise InputError(f"{flag} {value:g}: must be a number > 0")
     try:
-        record = pack_training_data(args.data, args.out, args.part_mib, args.validation)
+        record = pack_training_data(
+            args.data, args.out, args.part_mib, args.validation, args.max_mib
+        )
     except ValueError as exc:
         raise InputError(str(exc)) from exc
     files = sum(len(f) for kind in ("train", "validation") for f in record[kind].values())
@@ -53,6 +63,8 @@ def run(args: argparse.Namespace) -> int:
         f"sources ({files} files, {record['bytes'] / 2**20:.1f} MiB) into {len(parts)} parts; "
         f"manifest {record['manifest']}"
     )
+    if "compact" in record:
+        print(f"within {args.max_mib:g} MiB: {describe_compact(record['compact'])}")
     if record["left_out"]:
         print(f"left out (held out): {', '.join(record['left_out'])}")
     return 0

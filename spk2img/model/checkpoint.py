@@ -126,10 +126,19 @@ RELEASE_KEYS = (
 )
 
 
-def release_checkpoint(src: str | Path, dst: str | Path) -> None:
-    """Copy a training checkpoint without its optimiser state (what the repo ships)."""
+def release_checkpoint(src: str | Path, dst: str | Path, dtype: torch.dtype | None = None) -> None:
+    """Copy a training checkpoint without its optimiser state (what the repo ships); with
+    ``dtype`` (``torch.float16`` for a larger member's committed weights: half the bytes) its
+    floating-point weights are stored in that type, and loading casts them back to the
+    network's."""
     state = load_checkpoint(src)
-    save_checkpoint(dst, **{k: state[k] for k in RELEASE_KEYS if k in state})
+    release = {k: state[k] for k in RELEASE_KEYS if k in state}
+    if dtype is not None:
+        release["model"] = {
+            name: tensor.to(dtype) if tensor.is_floating_point() else tensor
+            for name, tensor in release["model"].items()
+        }
+    save_checkpoint(dst, **release)
 
 
 def average_checkpoints(sources: list[str | Path], weights: list[float], dst: str | Path) -> None:
