@@ -1,37 +1,132 @@
 #!/usr/bin/env bash
 # The commands of a lent GPU session (docs/gpu.md, "A GPU session"), each under 10 minutes,
-# each writing its figures under $OUT (the folder that comes back). Run from the checkout:
-#   scripts/gpu_session.sh torch                 # env, torch inference rows, GPU training speed
+# each writing what it measured under $OUT (the folder that comes back: 8 files at most).
+# Here, before the session:
+#   scripts/gpu_session.sh prepare DATA         # the training data as one part that fits beside
+#                                               # this checkout in one command (pack/, git-ignored)
+# There, run from the checkout, with `pack` carried:
+#   scripts/gpu_session.sh session SECONDS      # env, torch inference rows, synthesis speed,
+#                                               # then the runs of scripts/gpu_runs.txt trained
+#                                               # side by side for SECONDS, stopped, brought back
+#   scripts/gpu_session.sh more SECONDS         # the next command, while the machine is warm:
+#                                               # the same runs resumed for SECONDS
 #   scripts/gpu_session.sh receive MANIFEST DEST # one part of a split file (receive_parts.sh)
 #   scripts/gpu_session.sh onnx                  # onnxruntime-gpu rows (after receiving its wheel)
-#   scripts/gpu_session.sh train SECONDS ARGS…   # spk2img train on cuda for at most SECONDS
 #   scripts/gpu_session.sh train-start NAME SECONDS ARGS…
-#                                 # the same in the background (its own process session, so it
-#                                 # outlives the command): the run trains in /tmp/spk2img-runs/NAME
-#                                 # while later commands send files
+#                                 # one run in the background (its own process session, so it
+#                                 # outlives the command) in /tmp/spk2img-runs/NAME
 #   scripts/gpu_session.sh train-stop NAME
-#                                 # Ctrl-C to it (it saves last.pt at its step), then its log,
-#                                 # last.pt and best.pt into $OUT/NAME
+#                                 # Ctrl-C to it (it saves last.pt at its step), then its log and
+#                                 # metrics into $OUT/report/NAME and its checkpoints into $OUT
+# What `session` and `more` bring back: $OUT/report.tar.gz (environment.txt, the measurements'
+# JSON and logs, each run's train.log and metrics.jsonl) and $OUT/NAME-last.pt, NAME-best.pt
+# (a checkpoint over 15 MiB comes back as its weights alone in fp16).
 set -euo pipefail
 out=${OUT:-/tmp/spk2img-out}
 mkdir -p "$out"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 ort=/tmp/spk2img-ort-gpu   # where receive installs the onnxruntime-gpu wheel
-runs=${SPK2IMG_RUNS:-/tmp/spk2img-runs}   # where train-start trains
-step=${1:?torch, receive, onnx, train, train-start or train-stop}
+runs=${SPK2IMG_RUNS:-/tmp/spk2img-runs}   # where the runs train
+data=${SPK2IMG_DATA:-/tmp/spk2img-data}   # where session unpacks the training data
+run_list=${SPK2IMG_SESSION_RUNS:-scripts/gpu_runs.txt}
+pack=${SPK2IMG_PACK:-pack}   # the folder prepare writes and the session's command carries
+step=${1:?prepare, session, more, receive, onnx, train-start or train-stop}
 shift
+
+start_run() {  # NAME SECONDS ARGS…: train in the background, SIGINT after SECONDS
+  local name=$1 seconds=$2
+  shift 2
+  mkdir -p "$runs/$name"
+  setsid nohup timeout --signal=INT "$seconds" python3 -m spk2img train --device cuda \
+    --synthesis torch --no-progress --run-dir "$runs/$name" "$@" \
+    >> "$runs/$name/train.log" 2>&1 < /dev/null &
+  echo "training $name in the background for at most $seconds s: $runs/$name"
+}
+
+running() {  # NAME: is its training process alive?
+  pgrep -f "spk2img train .*--run-dir $runs/$1( |\$)" > /dev/null
+}
+
+stop_run() {  # NAME: Ctrl-C to the training process alone (timeout would pass it on twice)
+  pkill -INT -f "^python3 -m spk2img train .*--run-dir $runs/$1( |\$)" || echo "$1: not running"
+  for _ in $(seq 240); do
+    running "$1" || break
+    sleep 0.5
+  done
+}
+
+bring_back() {  # NAME: log and metrics into $out/report/NAME, checkpoints into $out
+  local name=$1 f
+  mkdir -p "$out/report/$name"
+  for f in train.log metrics.jsonl; do
+    if [ -f "$runs/$name/$f" ]; then cp "$runs/$name/$f" "$out/report/$name/"; fi
+  done
+  for f in last best; do
+    [ -f "$runs/$name/$f.pt" ] || continue
+    if [ "$(stat -c %s "$runs/$name/$f.pt")" -gt $((15 * 1024 * 1024)) ]; then
+      python3 -c "import sys, torch; from spk2img.model.checkpoint import release_checkpoint as r
+r(sys.argv[1], sys.argv[2], torch.float16)" "$runs/$name/$f.pt" "$out/$name-$f.pt"
+    else
+      cp "$runs/$name/$f.pt" "$out/$name-$f.pt"
+    fi
+  done
+  tail -n 3 "$runs/$name/train.log"
+}
+
+train_listed() {  # SECONDS: every run of $run_list side by side, then stopped and brought back
+  local seconds=$1 name args names=()
+  while read -r name args; do
+    case "$name" in ''|'#'*) continue ;; esac
+    # shellcheck disable=SC2086  # the flags are words
+    start_run "$name" "$seconds" $args --data "$data/train"
+    names+=("$name")
+  done < "$run_list"
+  sleep 2
+  for _ in $(seq $((seconds + 60))); do  # timeout stops each at SECONDS; each saves its step
+    alive=0
+    for name in "${names[@]}"; do if running "$name"; then alive=1; fi; done
+    [ "$alive" = 1 ] || break
+    sleep 1
+  done
+  for name in "${names[@]}"; do
+    if running "$name"; then stop_run "$name"; fi
+    bring_back "$name"
+  done
+  tar -czf "$out/report.tar.gz" -C "$out" report && rm -rf "$out/report"
+}
+
 case "$step" in
-  torch)
+  prepare)
+    # here: what a command carries beside this checkout, then the training data cut to fit it
+    room=$(python -m spk2img.parts room .)
+    rm -rf "$pack"
+    spk2img pack-data --data "${1:?the training data folder}" --out "$pack" --no-validation \
+      --max-mib "$room" --part-mib "$room"
+    echo "carry: $pack ($room MiB beside the checkout)"
+    ;;
+  session)
+    seconds=${1:?seconds of training}
     { python3 --version; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
       python3 -c "import torch; print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-    } > "$out/environment.txt" 2>&1
-    cat "$out/environment.txt"
-    timeout 240 python3 scripts/torch_inference_speed.py --device cuda --compile \
-      --json "$out/torch_inference.json" || echo "torch inference rows: exit $?"
-    timeout 240 python3 scripts/synthesis_speed.py --device cuda --workers 8 --batch-size 64 \
-      --patch 64 --steps 30 --synthesis-batches 8 --precisions bf16 \
-      --json "$out/synthesis_speed_gpu.json" \
-      || echo "synthesis speed: exit $?"
+      nproc
+    } > "$out/environment.txt" 2>&1 || true
+    mkdir -p "$out/report" && mv "$out/environment.txt" "$out/report/"
+    cat "$out/report/environment.txt"
+    scripts/receive_parts.sh "$pack/training-data.zip.parts.json" "$data"
+    if [ "${SPK2IMG_SESSION_MEASURE:-1}" = 1 ]; then
+      timeout 100 python3 scripts/torch_inference_speed.py --device cuda --models default,cpu,tiny \
+        --json "$out/report/torch_inference.json" > "$out/report/torch_inference.log" 2>&1 \
+        || echo "torch inference rows: exit $?"
+      timeout 70 python3 scripts/synthesis_speed.py --device cuda --workers 8 --batch-size 64 \
+        --patch 64 --steps 20 --synthesis-batches 4 --precisions bf16 --data "$data/train" \
+        --json "$out/report/synthesis_speed_gpu.json" > "$out/report/synthesis_speed.log" 2>&1 \
+        || echo "synthesis speed: exit $?"
+    fi
+    train_listed "$seconds"
+    ;;
+  more)
+    mkdir -p "$out/report"
+    train_listed "${1:?seconds of training}"
     ;;
   receive)
     scripts/receive_parts.sh "$@"
@@ -49,38 +144,16 @@ case "$step" in
     timeout 150 python3 -m spk2img verify spk2img/assets/models/spk2img-default.onnx \
       --device cuda --fp16 --quick > "$out/verify_fp16_cuda.txt" 2>&1 || echo "verify: exit $?"
     ;;
-  train)
-    seconds=${1:?seconds}
-    shift
-    timeout --signal=INT "$seconds" python3 -m spk2img train --device cuda --synthesis torch \
-      --no-progress "$@" || echo "train: exit $? (a run stopped by the timeout saved last.pt at its step)"
-    ;;
   train-start)
-    name=${1:?name} seconds=${2:?seconds}
-    shift 2
-    mkdir -p "$runs/$name"
-    setsid nohup timeout --signal=INT "$seconds" python3 -m spk2img train --device cuda \
-      --synthesis torch --no-progress --run-dir "$runs/$name" "$@" \
-      > "$runs/$name/train.log" 2>&1 < /dev/null &
-    echo "training $name in the background for at most $seconds s: $runs/$name"
+    start_run "$@"
     ;;
   train-stop)
     name=${1:?name}
-    # the training process alone (timeout, its parent, would pass the signal on twice)
-    pkill -INT -f "^python3 -m spk2img train .*--run-dir $runs/$name( |\$)" \
-      || echo "$name: not running"
-    for _ in $(seq 240); do
-      pgrep -f "spk2img train .*--run-dir $runs/$name( |\$)" > /dev/null || break
-      sleep 0.5
-    done
-    mkdir -p "$out/$name"
-    for f in train.log metrics.jsonl last.pt best.pt; do
-      if [ -f "$runs/$name/$f" ]; then cp "$runs/$name/$f" "$out/$name/"; fi
-    done
-    tail -n 3 "$runs/$name/train.log"
+    stop_run "$name"
+    bring_back "$name"
     ;;
   *)
-    echo "unknown step $step: torch, receive, onnx, train, train-start or train-stop" >&2
+    echo "unknown step $step: prepare, session, more, receive, onnx, train-start or train-stop" >&2
     exit 2
     ;;
 esac

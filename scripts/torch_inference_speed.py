@@ -110,10 +110,10 @@ def main(argv: list[str] | None = None) -> dict:
         rows = measure(model, windows, device, precisions, batches, args.repeats, args.compile)
         result["models"][name] = rows
         for row in rows:
-            print(name, json.dumps(row))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1) + "\n")
+            print(name, json.dumps(row), flush=True)
+        if args.json:  # after each network: a run stopped by its time limit keeps what it timed
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(result, indent=1) + "\n")
     return result
 
 

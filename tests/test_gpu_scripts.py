@@ -5,11 +5,16 @@ import json
 import os
 import subprocess
 import sys
+import tarfile
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
+from PIL import Image
+
+from spk2img.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -41,18 +46,33 @@ def test_torch_inference_speed_times_each_precision_and_batch_and_its_error(tmp_
         script.main(["--device", "cpu", "--precisions", "bf16"])
 
 
-def test_a_gpu_session_trains_in_the_background_and_brings_the_run_back(tmp_path):
-    """``gpu_session.sh train-start`` returns while the run trains on (on the CPU here: the last
-    ``--device`` wins); ``train-stop`` stops it at a step it saves and brings its log, metrics
-    and state into ``$OUT``."""
+def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tmp_path):
+    """``gpu_session.sh session`` (on the CPU here: the last ``--device`` wins) unpacks the
+    one-part training pack, trains the listed runs for the seconds given, stops them at a step
+    they save and brings back their logs, metrics and checkpoints, under 8 files; a run
+    started in the background with ``train-start`` (here: the same run, resumed) returns at
+    once, and ``train-stop`` stops it with Ctrl-C and brings it back too."""
+    data = tmp_path / "train"
+    (data / "photos").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        Image.fromarray(rng.integers(0, 256, (40, 48), np.uint8)).save(data / "photos" / f"{k}.png")
+    pack = tmp_path / "pack"
+    assert main(["pack-data", "--data", str(data), "--out", str(pack), "--max-mib", "1"]) == 0
+    flags = "--member tiny --patch 16 --batch-size 2 --val-per-class 1 --log-every 1 --workers 0"
+    flags += " --steps 100000 --val-every 100000 --checkpoint-every 100000 --device cpu"
+    (tmp_path / "runs.txt").write_text(f"# the run of this test\nt {flags}\n")
     env = {
         **os.environ,
         "OUT": str(tmp_path / "out"),
         "SPK2IMG_RUNS": str(tmp_path / "runs"),
+        "SPK2IMG_DATA": str(tmp_path / "data"),
+        "SPK2IMG_PACK": str(pack),
+        "SPK2IMG_SESSION_RUNS": str(tmp_path / "runs.txt"),
+        "SPK2IMG_SESSION_MEASURE": "0",
+        "PARTS_STORE": str(tmp_path / "parts"),
         "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",  # its python3
     }
-    flags = "--member tiny --patch 16 --batch-size 2 --val-per-class 1 --log-every 1 --workers 0"
-    long = "--steps 100000 --val-every 100000 --checkpoint-every 100000 --device cpu"
 
     def session(*args: str) -> str:
         cmd = ["bash", str(ROOT / "scripts" / "gpu_session.sh"), *args]
@@ -60,22 +80,36 @@ def test_a_gpu_session_trains_in_the_background_and_brings_the_run_back(tmp_path
         assert done.returncode == 0, done.stderr
         return done.stdout
 
-    assert "in the background" in session("train-start", "t", "300", *flags.split(), *long.split())
-    metrics = tmp_path / "runs" / "t" / "metrics.jsonl"
+    def brought() -> list[dict]:
+        with tarfile.open(tmp_path / "out" / "report.tar.gz") as report:
+            names = report.getnames()
+            assert "report/environment.txt" in names and "report/t/train.log" in names
+            lines = report.extractfile("report/t/metrics.jsonl").read().decode().splitlines()
+        return [json.loads(line) for line in lines]
+
+    said = session("session", "8")
+    records = brought()
+    (stopped,) = [r for r in records if r["kind"] == "stopped"]
+    assert stopped["signal"] == "SIGINT" and stopped["step"] >= 1
+    assert f"stopped at step {stopped['step']} of 100000" in said
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["report.tar.gz", "t-last.pt"]
+    last = torch.load(tmp_path / "out" / "t-last.pt", weights_only=True)
+    assert last["step"] == stopped["step"]
+
     try:
+        args = ["train-start", "t", "300", *flags.split(), "--data", str(tmp_path / "data/train")]
+        assert "in the background" in session(*args)
+        metrics = tmp_path / "runs" / "t" / "metrics.jsonl"
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and (
-            not metrics.is_file() or metrics.read_text().count('"kind": "train"') < 2
+        while time.monotonic() < deadline and metrics.read_text().count('"kind": "train"') < (
+            sum(r["kind"] == "train" for r in records) + 2
         ):
             time.sleep(0.2)
         said = session("train-stop", "t")
     finally:  # never leave the background run behind a failure
         subprocess.run(["pkill", "-KILL", "-f", f"--run-dir {tmp_path / 'runs' / 't'}"])
-    brought = tmp_path / "out" / "t"
-    records = [json.loads(line) for line in (brought / "metrics.jsonl").read_text().splitlines()]
-    (stopped,) = [r for r in records if r["kind"] == "stopped"]
-    assert stopped["signal"] == "SIGINT" and stopped["step"] >= 2
-    assert torch.load(brought / "last.pt", weights_only=True)["step"] == stopped["step"]
-    assert f"stopped at step {stopped['step']} of 100000" in said
-    assert "Traceback" not in (brought / "train.log").read_text()
+    resumed = json.loads(metrics.read_text().splitlines()[-1])
+    assert resumed["kind"] == "stopped" and resumed["step"] > stopped["step"]
+    assert torch.load(tmp_path / "out" / "t-last.pt", weights_only=True)["step"] == resumed["step"]
+    assert "Traceback" not in (tmp_path / "out" / "report" / "t" / "train.log").read_text()
     assert "not running" in session("train-stop", "t")
