@@ -117,8 +117,8 @@ case "$step" in
       timeout 100 python3 scripts/torch_inference_speed.py --device cuda --models default,cpu,tiny \
         --json "$out/report/torch_inference.json" > "$out/report/torch_inference.log" 2>&1 \
         || echo "torch inference rows: exit $?"
-      timeout 70 python3 scripts/synthesis_speed.py --device cuda --workers 8 --batch-size 64 \
-        --patch 64 --steps 20 --synthesis-batches 4 --precisions bf16 --data "$data/train" \
+      timeout 90 python3 scripts/synthesis_speed.py --device cuda --workers 8 --batch-size 64 \
+        --patch 64 --steps 8 --synthesis-batches 1 --precisions bf16 --data "$data/train" \
         --json "$out/report/synthesis_speed_gpu.json" > "$out/report/synthesis_speed.log" 2>&1 \
         || echo "synthesis speed: exit $?"
     fi
