@@ -44,6 +44,9 @@ def test_torch_inference_speed_times_each_precision_and_batch_and_its_error(tmp_
         assert row["max_abs_vs_fp32"] <= limit, row
     with pytest.raises(SystemExit):
         script.main(["--device", "cpu", "--precisions", "bf16"])
+    table = load_script("gpu_results").inference_table(result).splitlines()
+    assert table[0] == "# Torch inference on cpu" and len(table) == 6 + len(rows)
+    assert table[-1].startswith("| tiny | fp16 | 2 | ") and table[6].endswith("| — |")
 
 
 def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tmp_path):
@@ -55,8 +58,10 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
     data = tmp_path / "train"
     (data / "photos").mkdir(parents=True)
     rng = np.random.default_rng(0)
-    for k in range(3):
-        Image.fromarray(rng.integers(0, 256, (40, 48), np.uint8)).save(data / "photos" / f"{k}.png")
+    for name in ("leaf", "rock", "wall"):
+        Image.fromarray(rng.integers(0, 256, (40, 48), np.uint8)).save(
+            data / "photos" / f"{name}.png"
+        )
     pack = tmp_path / "pack"
     assert main(["pack-data", "--data", str(data), "--out", str(pack), "--max-mib", "1"]) == 0
     flags = "--member tiny --patch 16 --batch-size 2 --val-per-class 1 --log-every 1 --workers 0"
@@ -95,6 +100,15 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["report.tar.gz", "t-last.pt"]
     last = torch.load(tmp_path / "out" / "t-last.pt", weights_only=True)
     assert last["step"] == stopped["step"]
+    results, state = load_script("gpu_results"), tmp_path / "state"
+    said = results.take_results(tmp_path / "out", state, tmp_path / "back", tmp_path / "docs")
+    assert said[0].startswith(f"t: step {stopped['step']}, ") and "fp16 weights" in said[0]
+    assert "no torch inference rows came back" in said
+    assert (state / "t" / "metrics.jsonl").read_text().count('"kind": "stopped"') == 1
+    kept = torch.load(state / "t" / "last.pt", weights_only=True)
+    assert kept["step"] == stopped["step"] and "optimizer" not in kept
+    assert {t.dtype for t in kept["model"].values() if t.is_floating_point()} == {torch.float16}
+    assert (tmp_path / "docs" / "gpu_environment.txt").read_text().startswith("Python 3.")
 
     try:
         args = ["train-start", "t", "300", *flags.split(), "--data", str(tmp_path / "data/train")]
