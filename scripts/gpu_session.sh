@@ -100,7 +100,7 @@ case "$step" in
     # here: what a command carries beside this checkout, then the training data cut to fit it
     room=$(python -m spk2img.parts room .)
     rm -rf "$pack"
-    spk2img pack-data --data "${1:?the training data folder}" --out "$pack" --no-validation \
+    spk2img pack-data --data "${1:?the training data folder}" --out "$pack" \
       --max-mib "$room" --part-mib "$room"
     echo "carry: $pack ($room MiB beside the checkout)"
     ;;

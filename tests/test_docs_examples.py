@@ -90,8 +90,8 @@ NOT_RUN = {
     ): "installs, then needs a GPU",
     (
         "docs/gpu.md",
-        "# here: split (the training data: spk2img pack-data does it; any other file:)",
-    ): "needs the training data, the package registry and a GPU machine",
+        "# here: split",
+    ): "needs the package registry and a GPU machine",
     (
         "docs/sensor.md",
         "spk2img fit-sensor CAPTURE [--height 250 --width 400] [--out PRESET.json]",

@@ -147,7 +147,19 @@ def test_the_pack_travels_in_parts_and_unpacks_to_the_same_training_data(
     listed; the licences travel."""
     pack = tmp_path / "pack"
     assert (
-        main(["pack-data", "--data", str(data_dir), "--out", str(pack), "--part-mib", "0.002"]) == 0
+        main(
+            [
+                "pack-data",
+                "--data",
+                str(data_dir),
+                "--out",
+                str(pack),
+                "--part-mib",
+                "0.002",
+                "--with-validation",
+            ]
+        )
+        == 0
     )
     out = capsys.readouterr().out
     assert "packed 3 training and 1 validation sources (7 files" in out
@@ -172,7 +184,7 @@ def test_the_pack_can_leave_the_held_out_sources_out_and_refuses_bad_input(
     data_dir, tmp_path, capsys
 ):
     pack = tmp_path / "pack"
-    assert main(["pack-data", "--data", str(data_dir), "--out", str(pack), "--no-validation"]) == 0
+    assert main(["pack-data", "--data", str(data_dir), "--out", str(pack)]) == 0
     assert "left out (held out): kodak24_kodim08.png" in capsys.readouterr().out
     unpacked = unpack(pack, tmp_path)
     assert not list(unpacked.rglob("kodak24_kodim08.png"))
@@ -222,7 +234,7 @@ def test_a_pack_within_max_mib_keeps_whole_files_and_the_most_that_fits(
     room = max_mib * 2**20 - ARCHIVE_BYTES - cost(["train/photos/kodak24_kodim08.png"])
     room -= cost(["train/MANIFEST.md"])
     try:
-        record = pack_training_data([collection], out, part_mib=1, max_mib=max_mib)
+        record = pack_training_data([collection], out, 1, validation=True, max_mib=max_mib)
     except ValueError as exc:
         assert "too little for any training source" in str(exc)
         assert min(cost([f"train/photos/p{k}.png"]) for k in range(9)) > room

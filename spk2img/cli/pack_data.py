@@ -34,10 +34,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "most MIB: the first frames of every clip and every k-th photo (docs/gpu.md)",
     )
     p.add_argument(
-        "--no-validation",
+        "--with-validation",
         dest="validation",
-        action="store_false",
-        help="leave out the held-out validation sources (packed by default, never trained on)",
+        action="store_true",
+        help="also pack the held-out validation sources, apart (never trained on; left out and "
+        "listed by default)",
     )
 
 

@@ -6,12 +6,13 @@ byte for byte, at full stored resolution) of every source the training index fin
 photos and clips), with each folder's ``MANIFEST.*`` and ``licences/``:
 
 - ``train``: the sources training may draw from;
-- ``validation``: the held-out sources (:data:`~spk2img.evaluation.natural_validation.
-  NEVER_TRAINED`: the natural validation's photos and clips, the real-video clips), which the
-  training index skips by name, packed so that a run elsewhere validates as it does here;
-  ``--no-validation`` leaves them out.
+- ``validation``: with ``--with-validation``, the held-out sources (:data:`~spk2img.evaluation.
+  natural_validation.NEVER_TRAINED`: the natural validation's photos and clips, the real-video
+  clips), which the training index skips by name, packed so that a run elsewhere validates as
+  it does here (56 MiB of the project's collection);
+- ``left_out``: otherwise, the held-out sources' names: never trained on, not packed.
 
-``PACK.json`` inside lists both, by name, with their files. The archive is then split into
+``PACK.json`` inside lists them, by name, with their files. The archive is then split into
 parts of at most ``--part-mib`` (:mod:`spk2img.parts`) for a machine that receives 64 MiB a
 command; docs/gpu.md gives the steps there.
 
@@ -63,7 +64,7 @@ def pack_training_data(
     folders: list[str | Path],
     out: Path,
     part_mib: float = DEFAULT_PART_MIB,
-    validation: bool = True,
+    validation: bool = False,
     max_mib: float | None = None,
 ) -> dict:
     """Pack the sources under ``folders`` into ``out/training-data.zip``, split it into parts
@@ -136,7 +137,7 @@ def compact(
         raise ValueError(
             f"--max-mib {max_mib:g}: the held-out sources, manifests and licences leave "
             f"{max(room, 0) / MIB:.1f} MiB, too little for any training source (give more, or "
-            "add --no-validation)"
+            "leave the held-out sources out)"
         )
     summary = {
         "max_mib": max_mib,
