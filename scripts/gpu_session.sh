@@ -74,11 +74,15 @@ r(sys.argv[1], sys.argv[2], torch.float16)" "$runs/$name/$f.pt" "$out/$name-$f.p
 }
 
 train_listed() {  # SECONDS: every run of $run_list side by side, then stopped and brought back
-  local seconds=$1 name args names=()
+  local seconds=$1 name args names=() windows=()
+  # the real-video validation's windows, filmed here by pack-data (its clips stay here)
+  if [ -f "$data/real_video_windows.npz" ]; then
+    windows=(--real-video-windows "$data/real_video_windows.npz")
+  fi
   while read -r name args; do
     case "$name" in ''|'#'*) continue ;; esac
     # shellcheck disable=SC2086  # the flags are words
-    start_run "$name" "$seconds" $args --data "$data/train"
+    start_run "$name" "$seconds" $args --data "$data/train" "${windows[@]}"
     names+=("$name")
   done < "$run_list"
   sleep 2

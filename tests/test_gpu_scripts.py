@@ -62,6 +62,11 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
         Image.fromarray(rng.integers(0, 256, (40, 48), np.uint8)).save(
             data / "photos" / f"{name}.png"
         )
+    held_out = data / "video2" / "vid4_walk"  # a real-video clip: filmed into windows, not packed
+    held_out.mkdir(parents=True)
+    for k in range(4):
+        frame = np.roll(rng.integers(0, 256, (40, 48), np.uint8), k, axis=1)
+        Image.fromarray(frame).save(held_out / f"{k:05d}.png")
     pack = tmp_path / "pack"
     assert main(["pack-data", "--data", str(data), "--out", str(pack), "--max-mib", "1"]) == 0
     flags = "--member tiny --patch 16 --batch-size 2 --val-per-class 1 --log-every 1 --workers 0"
@@ -94,6 +99,8 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
 
     said = session("session", "8")
     records = brought()
+    (logged,) = [r for r in records if r["kind"] == "data"]
+    assert logged["real_video_windows"] == 2  # the clip's two speed bins, from the pack's file
     (stopped,) = [r for r in records if r["kind"] == "stopped"]
     assert stopped["signal"] == "SIGINT" and stopped["step"] >= 1
     assert f"stopped at step {stopped['step']} of 100000" in said

@@ -19,6 +19,7 @@ from PIL import Image
 
 from spk2img import parts as parts_module
 from spk2img.cli import main
+from spk2img.evaluation.real_video import load_windows, training_windows
 from spk2img.parts import PartsError, collect, join, missing, read_manifest, split
 from spk2img.sim.sources import SourceIndex
 from spk2img.training.pack import ARCHIVE_BYTES, ENTRY_BYTES, PACK_NAME, pack_training_data
@@ -184,10 +185,19 @@ def test_the_pack_can_leave_the_held_out_sources_out_and_refuses_bad_input(
     data_dir, tmp_path, capsys
 ):
     pack = tmp_path / "pack"
+    clip = data_dir / "video" / "vid4_walk"  # a held-out real-video clip
+    shutil.copytree(data_dir / "video" / "pan", clip)
     assert main(["pack-data", "--data", str(data_dir), "--out", str(pack)]) == 0
-    assert "left out (held out): kodak24_kodim08.png" in capsys.readouterr().out
+    assert "left out (held out): kodak24_kodim08.png, vid4_walk" in capsys.readouterr().out
     unpacked = unpack(pack, tmp_path)
-    assert not list(unpacked.rglob("kodak24_kodim08.png"))
+    assert not list(unpacked.rglob("kodak24_kodim08.png")) and not list(unpacked.rglob("vid4*"))
+    record = json.loads((unpacked / "PACK.json").read_text())
+    assert record["real_video_windows"] == {"file": "real_video_windows.npz", "windows": 2}
+    filmed = training_windows([data_dir])  # what the run elsewhere validates on: the same
+    got = load_windows(unpacked / "real_video_windows.npz")
+    assert [w.clip for w in got] == ["vid4_walk"] * 2
+    assert all(np.array_equal(a.spikes, b.spikes) for a, b in zip(got, filmed, strict=True))
+    assert not (pack / "real_video_windows.npz").exists()  # only the parts stay
     assert main(["pack-data", "--data", str(tmp_path / "nowhere")]) == 2
     assert main(["pack-data", "--data", str(data_dir), "--part-mib", "0"]) == 2
     assert main(["pack-data", "--data", str(data_dir), "--part-mib", "nan"]) == 2

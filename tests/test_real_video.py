@@ -21,9 +21,12 @@ from spk2img.evaluation.real_video import (
     RealVideoWindow,
     film,
     find_real_video_clips,
+    load_windows,
     real_video_scenes,
     real_video_scores,
     real_video_set,
+    save_windows,
+    training_windows,
 )
 from spk2img.io.light import SPIKE_RATE
 from spk2img.sim.natural_scenes import CLIP_MARGIN
@@ -116,6 +119,26 @@ def test_the_set_films_every_clip_at_every_bin_and_seed(data_dir):
     cropped = real_video_set([data_dir], seeds=1, size=(16, 24))
     assert [w.spikes.shape for w in cropped] == [(FILM_FRAMES, 16, 24)] * 4
     assert [w.truth.shape for w in cropped] == [(16, 24)] * 4
+
+
+def test_training_windows_travel_in_a_file_and_come_back_the_same(data_dir, tmp_path):
+    """``save_windows`` / ``load_windows``: the training crops of the clips, bit for bit (the
+    spikes packed 8 to a byte), so a run without the clips validates on the same windows; a
+    file that is not one is named."""
+    windows = training_windows([data_dir])
+    path = tmp_path / "windows.npz"
+    save_windows(windows, path)
+    back = load_windows(path)
+    assert [(w.clip, w.speed_bin, w.speed, w.seed) for w in back] == [
+        (w.clip, w.speed_bin, w.speed, w.seed) for w in windows
+    ]
+    for got, filmed in zip(back, windows, strict=True):
+        assert got.spikes.dtype == np.uint8 and np.array_equal(got.spikes, filmed.spikes)
+        assert np.array_equal(got.truth, filmed.truth)
+    assert path.stat().st_size < sum(w.spikes.size // 8 + w.truth.nbytes for w in windows)
+    (tmp_path / "other.npz").write_bytes(b"not an archive")
+    with pytest.raises(ValueError, match="other.npz: not a file of real-video windows"):
+        load_windows(tmp_path / "other.npz")
 
 
 def test_scores_per_bin_clip_and_seed_and_the_cards_section():

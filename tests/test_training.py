@@ -15,6 +15,7 @@ from PIL import Image
 
 from spk2img.cli import main
 from spk2img.errors import InputError
+from spk2img.evaluation.real_video import film, real_video_scenes, save_windows
 from spk2img.evaluation.scoring import validation_set
 from spk2img.model.checkpoint import (
     config_to_dict,
@@ -26,7 +27,7 @@ from spk2img.model.checkpoint import (
 from spk2img.model.config import PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
-from spk2img.sim.simulator import SensorConfig
+from spk2img.sim.simulator import FILM_FRAMES, SensorConfig
 from spk2img.sim.sources import load_photo
 from spk2img.training.data import Batches, SampleMaker
 from spk2img.training.ema import WeightAverage
@@ -357,6 +358,27 @@ def test_init_grows_the_shipped_default_into_medium(tmp_path):
     tiny = write_tiny_checkpoint(tmp_path / "tiny.pt")
     with pytest.raises(InputError, match="cannot grow into: only the widths, .*pyramid_levels"):
         load_initial_weights(build_model("medium"), str(tiny))
+
+
+def test_a_run_validates_on_real_video_windows_from_a_file(tmp_path):
+    """``--real-video-windows``: the windows are scored at each validation as filmed ones are
+    (and chose best.pt: the noise-free run's selection set); a file that is not one is an input
+    error before any step."""
+    rng = np.random.default_rng(3)
+    frames = tuple(np.roll(rng.integers(0, 256, (48, 56), np.uint8), k, axis=1) for k in range(4))
+    scenes = real_video_scenes("vid4_walk", frames, ("fast",), FILM_FRAMES)
+    windows = [film(scene, 0) for scene in scenes]  # 16x24 inside the flow's margin
+    path = tmp_path / "windows.npz"
+    save_windows(windows, path)
+    run = TINY_RUN | {"run_dir": str(tmp_path / "run"), "ideal_share": 1.0}
+    train(TrainConfig(steps=4, real_video_windows=str(path), **run))
+    records = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").open()]
+    (data,) = [r for r in records if r["kind"] == "data"]
+    (val,) = [r for r in records if r["kind"] == "val"]
+    assert data["real_video_windows"] == 1 and 0 < val["real_video"]["psnr"] < 60
+    bad = TINY_RUN | {"run_dir": str(tmp_path / "bad"), "real_video_windows": str(tmp_path)}
+    with pytest.raises(InputError, match="--real-video-windows .*not a file of real-video windows"):
+        train(TrainConfig(steps=1, **bad))
 
 
 def test_fp16_weights_start_a_run_as_the_weights_they_round(tmp_path):

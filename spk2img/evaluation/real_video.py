@@ -64,6 +64,10 @@ about seven times faster motion (capped, like any bin, by what a window in the c
 0.19-0.94 px a spike frame on these clips)."""
 SEEDS = 3
 """Draws of the sensor's initial charge per window by default."""
+TRAINING_CROP = (96, 128)
+"""Height and width of the centre crops of the clips that training validates on
+(:func:`training_windows`; the whole frames are scored by the model card and
+scripts/real_video_validation.py)."""
 
 
 @dataclass(frozen=True)
@@ -198,3 +202,49 @@ def real_video_scores(windows: list[RealVideoWindow], images: list[np.ndarray]) 
         "seed_std_db": float(np.std(per_seed)),
         "speed_bins": per_bin,
     }
+
+
+def training_windows(folders: list[str | Path]) -> list[RealVideoWindow]:
+    """The real-video windows training validates on: one seed, the :data:`TRAINING_CROP` of
+    each clip under ``folders``, at each speed bin."""
+    return real_video_set(folders, seeds=1, size=TRAINING_CROP)
+
+
+def save_windows(windows: list[RealVideoWindow], path: str | Path) -> None:
+    """Write ``windows`` (all of one size) to the ``.npz`` file ``path``: the spikes packed 8 to
+    a byte, the rest as it is, so that a machine without the clips validates on the same
+    windows (:func:`load_windows`)."""
+    spikes = np.stack([w.spikes for w in windows])
+    np.savez_compressed(
+        path,
+        clip=np.array([w.clip for w in windows]),
+        speed_bin=np.array([w.speed_bin for w in windows]),
+        speed=np.array([w.speed for w in windows], np.float64),
+        seed=np.array([w.seed for w in windows], np.int64),
+        spikes=np.packbits(spikes, axis=-1),
+        width=np.int64(spikes.shape[-1]),
+        truth=np.stack([w.truth for w in windows]).astype(np.float32),
+    )
+
+
+def load_windows(path: str | Path) -> list[RealVideoWindow]:
+    """The windows :func:`save_windows` wrote to ``path``; ``ValueError`` naming the file
+    where it is not such a file."""
+    try:
+        with np.load(path, allow_pickle=False) as stored:
+            spikes = np.unpackbits(stored["spikes"], axis=-1, count=int(stored["width"]))
+            fields = zip(
+                stored["clip"],
+                stored["speed_bin"],
+                stored["speed"],
+                stored["seed"],
+                spikes,
+                stored["truth"],
+                strict=True,
+            )
+            return [
+                RealVideoWindow(str(c), str(b), float(v), int(s), frames, truth)
+                for c, b, v, s, frames, truth in fields
+            ]
+    except (OSError, KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: not a file of real-video windows ({exc})") from None

@@ -79,6 +79,12 @@ class TrainConfig:
     """Folders of photographs and clips (:mod:`spk2img.sim.sources`; the ``--data`` flag, given
     once per folder); none: procedural content only. The held-out sources of the natural and
     the real-video validations are never trained on."""
+    real_video_windows: str = flag(
+        "",
+        "validate on the real-video windows of this file (written by spk2img pack-data beside "
+        "the packed sources: the same crops the clips give) instead of filming the held-out "
+        "clips under --data",
+    )
     data_mix: str = flag(
         "photos=0.5,clips=0.3,procedural=0.2",
         "shares of photo, clip and procedural samples (photos and clips need --data)",

@@ -10,7 +10,11 @@ photos and clips), with each folder's ``MANIFEST.*`` and ``licences/``:
   natural_validation.NEVER_TRAINED`: the natural validation's photos and clips, the real-video
   clips), which the training index skips by name, packed so that a run elsewhere validates as
   it does here (56 MiB of the project's collection);
-- ``left_out``: otherwise, the held-out sources' names: never trained on, not packed.
+- ``left_out``: otherwise, the held-out sources' names: never trained on, not packed. Their
+  real-video clips' windows that training validates on are packed instead, filmed here
+  (:data:`REAL_VIDEO_WINDOWS`, a few MiB against their clips' 56: ``spk2img train
+  --real-video-windows`` reads them), so that a run elsewhere still validates on real video and
+  chooses its ``best.pt`` as a run here does.
 
 ``PACK.json`` inside lists them, by name, with their files. The archive is then split into
 parts of at most ``--part-mib`` (:mod:`spk2img.parts`) for a machine that receives 64 MiB a
@@ -30,10 +34,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from spk2img.evaluation.natural_validation import NEVER_TRAINED
+from spk2img.evaluation.real_video import save_windows, training_windows
 from spk2img.parts import DEFAULT_PART_MIB, MIB, split
 from spk2img.sim.sources import MIN_CLIP_FRAMES, FrameFolder, Photo, SourceIndex, VideoFile
 
 PACK_NAME = "training-data.zip"
+REAL_VIDEO_WINDOWS = "real_video_windows.npz"
+"""The archive's file of the real-video validation's training windows (module doc)."""
 LICENCE_GLOBS = ("MANIFEST*", "licences/**/*", "LICENSE*")
 ENTRY_BYTES = 640
 """An upper bound of what a file adds to the archive beside its bytes: its two zip headers
@@ -99,18 +106,26 @@ def pack_training_data(
             f"no training sources (photos or clips) under {', '.join(map(str, roots))}: "
             "nothing to pack"
         )
-    if max_mib is not None:
-        room = int(max_mib * MIB) - ARCHIVE_BYTES - _bytes(kept.values())
-        training, record["compact"] = compact(training, room, max_mib)
-    members = dict(kept)
-    for root, packed in training:
-        record["train"][packed.name] = _add(members, root, packed.files)
     out.mkdir(parents=True, exist_ok=True)
-    archive = out / PACK_NAME
-    with zipfile.ZipFile(archive, "w", zipfile.ZIP_STORED) as pack:
-        pack.writestr("PACK.json", json.dumps(record, indent=1) + "\n")
-        for arcname, path in sorted(members.items()):
-            pack.write(path, arcname)
+    windows_file = out / REAL_VIDEO_WINDOWS  # only while the archive is written
+    try:
+        if not validation and (windows := training_windows(roots)):
+            save_windows(windows, windows_file)
+            kept[REAL_VIDEO_WINDOWS] = windows_file
+            record["real_video_windows"] = {"file": REAL_VIDEO_WINDOWS, "windows": len(windows)}
+        if max_mib is not None:
+            room = int(max_mib * MIB) - ARCHIVE_BYTES - _bytes(kept.values())
+            training, record["compact"] = compact(training, room, max_mib)
+        members = dict(kept)
+        for root, packed in training:
+            record["train"][packed.name] = _add(members, root, packed.files)
+        archive = out / PACK_NAME
+        with zipfile.ZipFile(archive, "w", zipfile.ZIP_STORED) as pack:
+            pack.writestr("PACK.json", json.dumps(record, indent=1) + "\n")
+            for arcname, path in sorted(members.items()):
+                pack.write(path, arcname)
+    finally:
+        windows_file.unlink(missing_ok=True)
     record["bytes"] = archive.stat().st_size
     record["manifest"] = str(split(archive, out, int(part_mib * MIB)))
     archive.unlink()

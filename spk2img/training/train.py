@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from spk2img.errors import InputError
 from spk2img.evaluation.natural_validation import NEVER_TRAINED, natural_validation_set
-from spk2img.evaluation.real_video import real_video_scores, real_video_set
+from spk2img.evaluation.real_video import load_windows, real_video_scores, training_windows
 from spk2img.evaluation.scoring import baseline_scores, network_scorer, score, validation_set
 from spk2img.hardware import cpu_words
 from spk2img.model.checkpoint import (
@@ -47,11 +47,6 @@ from .stop import StopRequest
 from .synthesis import batch_generator, film_plans
 
 CHECKPOINT_SECONDS = 600.0
-
-
-REAL_VIDEO_VAL_SIZE = (96, 128)
-"""Height and width of the centre crops of the real-video clips validated on during training
-(the whole frames are scored by the model card and scripts/real_video_validation.py)."""
 
 
 def selection_set(ideal_share: float, natural: bool, real_video: bool = False) -> str:
@@ -210,8 +205,7 @@ def train(cfg: TrainConfig) -> dict:
         log.write(kind="run", step=start, **origin)
         val_sets["natural"] = natural_validation_set(cfg.data) if cfg.data else []
         val_sets["procedural"] = validation_set(cfg.val_per_class)
-        real_video = real_video_set(cfg.data, seeds=1, size=REAL_VIDEO_VAL_SIZE) if cfg.data else []
-        val_sets["real_video"] = real_video
+        val_sets["real_video"] = real_video_windows(cfg)
         log.write(
             kind="data",
             step=start,
@@ -400,6 +394,17 @@ def training_memory_format(device: torch.device, bf16: bool) -> torch.memory_for
     the CPU, where a step of every member took less time in it on an AMD EPYC (`small` 15.7 s
     against 18.7, `cpu` 1.68 against 1.99, `tiny` 6.0 against 6.6, `lite` 3.45 against 3.62)."""
     return torch.channels_last if device.type == "cuda" or bf16 else torch.contiguous_format
+
+
+def real_video_windows(cfg: TrainConfig) -> list:
+    """The real-video validation's windows: read from ``--real-video-windows``, else filmed
+    from the clips under ``--data`` (none without either)."""
+    if cfg.real_video_windows:
+        try:
+            return load_windows(cfg.real_video_windows)
+        except ValueError as exc:
+            raise InputError(f"--real-video-windows {exc}") from exc
+    return training_windows(cfg.data) if cfg.data else []
 
 
 def training_device(name: str) -> torch.device:
