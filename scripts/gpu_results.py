@@ -126,6 +126,12 @@ def take_results(files_at: Path, state_dir: Path, runs: Path, docs: Path) -> lis
         said.append(f"torch inference rows of {len(result['models'])} networks: {docs}")
     else:
         said.append("no torch inference rows came back")
+    written = {path.split("/")[0] for path in report if path.endswith("metrics.jsonl")}
+    others = sorted(
+        p.parent.name for p in state_dir.glob("*/last.pt") if p.parent.name not in written
+    )
+    if others and len(written) + len(others) > 2:  # the repository keeps two runs' states
+        said.append(f"more than two states in {state_dir}: drop the last.pt of {', '.join(others)}")
     for name in ("synthesis_speed_gpu.json", "environment.txt"):
         if name in report:
             (docs / ("gpu_" + name if name == "environment.txt" else name)).write_bytes(

@@ -108,9 +108,13 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
     last = torch.load(tmp_path / "out" / "t-last.pt", weights_only=True)
     assert last["step"] == stopped["step"]
     results, state = load_script("gpu_results"), tmp_path / "state"
+    for older in ("a", "b"):  # two runs' states there already: one must go
+        (state / older).mkdir(parents=True)
+        (state / older / "last.pt").write_bytes(b"")
     said = results.take_results(tmp_path / "out", state, tmp_path / "back", tmp_path / "docs")
     assert said[0].startswith(f"t: step {stopped['step']}, ") and "fp16 weights" in said[0]
     assert "no torch inference rows came back" in said
+    assert f"more than two states in {state}: drop the last.pt of a, b" in said
     assert (state / "t" / "metrics.jsonl").read_text().count('"kind": "stopped"') == 1
     kept = torch.load(state / "t" / "last.pt", weights_only=True)
     assert kept["step"] == stopped["step"] and "optimizer" not in kept
