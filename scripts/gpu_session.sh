@@ -73,16 +73,27 @@ r(sys.argv[1], sys.argv[2], torch.float16)" "$runs/$name/$f.pt" "$out/$name-$f.p
   tail -n 3 "$runs/$name/train.log"
 }
 
+read_pack() {  # data_flags: --data for each folder of the unpacked pack, as PACK.json names them
+  local folder
+  data_flags=()
+  for folder in $(python3 -c "import json, sys; print(*json.load(open(sys.argv[1]))['folders'])" \
+      "$data/PACK.json"); do
+    data_flags+=(--data "$data/$folder")
+  done
+}
+
 train_listed() {  # SECONDS: every run of $run_list side by side, then stopped and brought back
-  local seconds=$1 name args names=() windows=()
-  # the real-video validation's windows, filmed here by pack-data (its clips stay here)
+  local seconds=$1 name args names=() sources=()
+  read_pack
+  sources=("${data_flags[@]}")
+  # the real-video validation's windows that pack-data filmed from the clips it left here
   if [ -f "$data/real_video_windows.npz" ]; then
-    windows=(--real-video-windows "$data/real_video_windows.npz")
+    sources+=(--real-video-windows "$data/real_video_windows.npz")
   fi
   while read -r name args; do
     case "$name" in ''|'#'*) continue ;; esac
     # shellcheck disable=SC2086  # the flags are words
-    start_run "$name" "$seconds" $args --data "$data/train" "${windows[@]}"
+    start_run "$name" "$seconds" $args "${sources[@]}"
     names+=("$name")
   done < "$run_list"
   sleep 2
@@ -117,12 +128,13 @@ case "$step" in
     mkdir -p "$out/report" && mv "$out/environment.txt" "$out/report/"
     cat "$out/report/environment.txt"
     scripts/receive_parts.sh "$pack/training-data.zip.parts.json" "$data"
+    read_pack
     if [ "${SPK2IMG_SESSION_MEASURE:-1}" = 1 ]; then
       timeout 100 python3 scripts/torch_inference_speed.py --device cuda --models default,cpu,tiny \
         --json "$out/report/torch_inference.json" > "$out/report/torch_inference.log" 2>&1 \
         || echo "torch inference rows: exit $?"
       timeout 90 python3 scripts/synthesis_speed.py --device cuda --workers 8 --batch-size 64 \
-        --patch 64 --steps 8 --synthesis-batches 1 --precisions bf16 --data "$data/train" \
+        --patch 64 --steps 8 --synthesis-batches 1 --precisions bf16 "${data_flags[@]}" \
         --json "$out/report/synthesis_speed_gpu.json" > "$out/report/synthesis_speed.log" 2>&1 \
         || echo "synthesis speed: exit $?"
     fi

@@ -55,7 +55,7 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
     they save and brings back their logs, metrics and checkpoints, under 8 files; a run
     started in the background with ``train-start`` (here: the same run, resumed) returns at
     once, and ``train-stop`` stops it with Ctrl-C and brings it back too."""
-    data = tmp_path / "train"
+    data = tmp_path / "collection"  # any name: the session reads it from PACK.json
     (data / "photos").mkdir(parents=True)
     rng = np.random.default_rng(0)
     for name in ("leaf", "rock", "wall"):
@@ -122,7 +122,14 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
     assert (tmp_path / "docs" / "gpu_environment.txt").read_text().startswith("Python 3.")
 
     try:
-        args = ["train-start", "t", "300", *flags.split(), "--data", str(tmp_path / "data/train")]
+        args = [
+            "train-start",
+            "t",
+            "300",
+            *flags.split(),
+            "--data",
+            str(tmp_path / "data/collection"),
+        ]
         assert "in the background" in session(*args)
         metrics = tmp_path / "runs" / "t" / "metrics.jsonl"
         deadline = time.monotonic() + 120
