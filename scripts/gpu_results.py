@@ -61,7 +61,6 @@ def run_summary(metrics: bytes) -> dict:
         "samples_per_s": steps_per_s * batch if steps_per_s and batch else None,
         "val_psnr": vals[-1].get("psnr") if vals else None,
         "val_step": vals[-1]["step"] if vals else None,
-        "hardware": start.get("hardware"),
     }
 
 
@@ -93,7 +92,8 @@ def take_results(files_at: Path, state_dir: Path, runs: Path, docs: Path) -> lis
         return [f"{files_at}: no {REPORT}: the session brought back no report"]
     report = read_report(files_at)
     docs.mkdir(parents=True, exist_ok=True)
-    for name in sorted({path.split("/")[0] for path in report if path.endswith("metrics.jsonl")}):
+    written = sorted({path.split("/")[0] for path in report if path.endswith("metrics.jsonl")})
+    for name in written:
         metrics = report[f"{name}/metrics.jsonl"]
         (state_dir / name).mkdir(parents=True, exist_ok=True)
         (state_dir / name / "metrics.jsonl").write_bytes(metrics)
@@ -102,8 +102,9 @@ def take_results(files_at: Path, state_dir: Path, runs: Path, docs: Path) -> lis
             came = files_at / f"{name}-{kind}.pt"
             if came.is_file():
                 shutil.copyfile(came, runs / name / f"{kind}.pt")
-        if (runs / name / "last.pt").is_file():
-            release_checkpoint(runs / name / "last.pt", state_dir / name / "last.pt", torch.float16)
+        last = runs / name / "last.pt"
+        if last.is_file():
+            release_checkpoint(last, state_dir / name / "last.pt", torch.float16)
         summary = run_summary(metrics)
         rate = (
             f"{summary['steps_per_s']:.2f} steps/s ({summary['samples_per_s']:.0f} samples/s)"
@@ -115,9 +116,7 @@ def take_results(files_at: Path, state_dir: Path, runs: Path, docs: Path) -> lis
             if summary["val_psnr"] is not None
             else "no validation yet"
         )
-        kept = (
-            "last.pt kept (fp16 weights)" if (runs / name / "last.pt").is_file() else "no last.pt"
-        )
+        kept = "last.pt kept (fp16 weights)" if last.is_file() else "no last.pt"
         said.append(f"{name}: step {summary['step']}, {rate}, {val}; {kept}")
     if "torch_inference.json" in report:
         result = json.loads(report["torch_inference.json"])
@@ -126,7 +125,6 @@ def take_results(files_at: Path, state_dir: Path, runs: Path, docs: Path) -> lis
         said.append(f"torch inference rows of {len(result['models'])} networks: {docs}")
     else:
         said.append("no torch inference rows came back")
-    written = {path.split("/")[0] for path in report if path.endswith("metrics.jsonl")}
     others = sorted(
         p.parent.name for p in state_dir.glob("*/last.pt") if p.parent.name not in written
     )

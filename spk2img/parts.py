@@ -167,8 +167,7 @@ def travelling_bytes(checkout: Path) -> int:
     )
     if listed.returncode:
         raise PartsError(f"{checkout}: not a git checkout ({os.fsdecode(listed.stderr).strip()})")
-    listing = listed.stdout
-    files = {Path(checkout, name) for name in os.fsdecode(listing).split("\0") if name}
+    files = {Path(checkout, name) for name in os.fsdecode(listed.stdout).split("\0") if name}
     return sum(f.lstat().st_size for f in files if f.is_file() or f.is_symlink())
 
 

@@ -49,22 +49,22 @@ ARCHIVE_BYTES = 4096
 """What the archive adds beside its files: the end record and ``PACK.json``'s other keys."""
 
 
-def source_files(source: Photo | FrameFolder | VideoFile) -> tuple[str, list[Path]]:
-    """A source's name (what held-out lists use) and its files."""
-    if isinstance(source, Photo):
-        return source.path.name, [source.path]
-    if isinstance(source, FrameFolder):
-        return source.name, list(source.frames)
-    return source.name, [source.path]
-
-
 @dataclass(frozen=True)
 class Packed:
-    """A source as packed: its name, whether it is a clip, and its files (in frame order)."""
+    """A source as packed: its name (what held-out lists use), whether it is a clip, and its
+    files (in frame order)."""
 
     name: str
     clip: bool
     files: tuple[Path, ...]
+
+    @classmethod
+    def of(cls, source: Photo | FrameFolder | VideoFile) -> Packed:
+        if isinstance(source, Photo):
+            return cls(source.path.name, False, (source.path,))
+        if isinstance(source, FrameFolder):
+            return cls(source.name, True, source.frames)
+        return cls(source.name, True, (source.path,))
 
 
 def pack_training_data(
@@ -89,14 +89,13 @@ def pack_training_data(
     for root in roots:
         index = SourceIndex.scan([root], min_side=0)
         for source in index.photos + index.clips:
-            name, files = source_files(source)
-            packed = Packed(name, not isinstance(source, Photo), tuple(files))
-            if name not in NEVER_TRAINED:
+            packed = Packed.of(source)
+            if packed.name not in NEVER_TRAINED:
                 training.append((root, packed))
             elif validation:
-                record["validation"][name] = _add(kept, root, packed.files)
+                record["validation"][packed.name] = _add(kept, root, packed.files)
             else:
-                record["left_out"].append(name)
+                record["left_out"].append(packed.name)
         for pattern in LICENCE_GLOBS:
             for path in sorted(root.glob(pattern)):
                 if path.is_file():
