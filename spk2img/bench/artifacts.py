@@ -107,9 +107,16 @@ def net_rows(
     return rows, failed
 
 
-def make_graph(weights: Weights, backend: str, path: Path, fp32_graph: Path | None) -> None:
+def make_graph(
+    weights: Weights,
+    backend: str,
+    path: Path,
+    fp32_graph: Path | None,
+    block_graphs: bool = False,
+) -> None:
     """Write the ONNX graph ``backend`` runs to ``path``; ``fp32_graph`` is the grid_sample
-    graph that reduced-precision variants start from."""
+    graph that reduced-precision variants start from; ``block_graphs``: the encoder and head
+    beside it too (for streamed rows)."""
     from spk2img.export.onnx_export import ExportConfig
     from spk2img.export.pipeline import export_verified
     from spk2img.export.quantize import reduce_precision
@@ -120,8 +127,9 @@ def make_graph(weights: Weights, backend: str, path: Path, fp32_graph: Path | No
         reduce_precision(fp32_graph, path, PRECISIONS[backend])
         return
     graph = "deform_conv" if backend == "onnx-deform" else "grid_sample"
-    # the rows run one-shot graphs; only the shipped model streams, with its own block graphs
-    export_verified(weights.export_source(), path, ExportConfig(graph=graph), block_graphs=False)
+    # the CPU rows run one-shot graphs; the shipped model streams with its own block graphs
+    config = ExportConfig(graph=graph)
+    export_verified(weights.export_source(), path, config, block_graphs=block_graphs)
 
 
 def cost(weights: Weights, sizes: dict[str, tuple[int, int]]) -> dict:

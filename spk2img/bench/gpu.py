@@ -1,15 +1,17 @@
-"""The GPU rows of the benchmark: the shipped and ``paper`` networks on onnxruntime's CUDA (or
-TensorRT) provider, fp32 and fp16, one-shot (one and :data:`BATCH` centres per call, and the
-self-ensemble's four mirrored views of one centre in one call) and streamed with block reuse,
-and the service's frames/s with :data:`SERVICE_CLIENTS` clients.
+"""The GPU rows of the benchmark: the shipped networks of each architecture and the ``paper``
+member on onnxruntime's CUDA (or TensorRT) provider, fp32 and fp16, one-shot (one, 8 and 32
+centres per call, and the self-ensemble's four mirrored views of one centre in one call) and
+streamed with block reuse, and the service's frames/s with 1 and 4 concurrent clients.
 
 They run only where a CUDA provider starts (:func:`gpu_device`); elsewhere the report lists the
 same rows as not yet measured, never with a figure. Each row runs in a fresh worker process
-(:func:`spk2img.bench.worker.measure_gpu`) and names the GPU it ran on.
+(:func:`spk2img.bench.worker.measure_gpu`) and names the GPU it ran on; the rows measured so
+far can be written after each one (``on_row``), so a run cut short keeps them.
 """
 
 from __future__ import annotations
 
+import functools
 import shutil
 import subprocess
 from collections.abc import Callable
@@ -19,16 +21,25 @@ import numpy as np
 
 from .worker import WorkerError, run_job
 
-WEIGHTS = ("shipped", "paper")
-"""Networks timed on the GPU: the shipped model and the paper-sized member (random weights)."""
+WEIGHTS = ("shipped", "tiny", "cpu", "paper")
+"""Networks timed on the GPU, in this order: the shipped default, the shipped models of the two
+other architectures (``real`` and ``tiny-real`` run default's and tiny's graphs), and the
+paper-sized member (random weights, :data:`UNTRAINED`)."""
+UNTRAINED = ("paper",)
 PRECISIONS = ("fp32", "fp16")
-BATCH = 8
+BATCHES = (8, 32)
 """Centres per call of the batched one-shot rows (the one-shot graph's batch axis is dynamic)."""
 SELF_ENSEMBLE = "one-shot, self-ensemble"
 """The mode of the rows that run one centre's four mirrored views as one call."""
-MODES = {"one-shot": 1, f"one-shot, {BATCH} per call": BATCH, SELF_ENSEMBLE: 1, "streamed": 0}
+MODES = {
+    "one-shot": 1,
+    **{f"one-shot, {batch} per call": batch for batch in BATCHES},
+    SELF_ENSEMBLE: 1,
+    "streamed": 0,
+}
 """Row mode -> centres per one-shot call (0: streamed, each 13-frame block encoded once)."""
-SERVICE_CLIENTS = 4
+SERVICE_CLIENTS = (1, 4)
+"""Concurrent clients of the service's rows."""
 NO_GPU = "not yet measured (no GPU on the machine that ran this bench)"
 WORKER_TIMEOUT_S = 3600
 
@@ -88,71 +99,89 @@ def gpu_device(requested: str, model: Path) -> tuple[str | None, str]:
 
 
 def gpu_benchmark(
-    device: str,
-    weights: dict[str, Path],
-    cases_dir: Path,
-    stream: Path,
-    threads: int,
-    repeats: int,
+    section: dict,
+    graphs: dict[str, Callable[[], Path]],
+    job: dict,
     work: Path,
     log: Callable[[str], None],
+    on_row: Callable[[dict], None] | None = None,
 ) -> dict:
-    """Measure every planned row on ``device`` (a concrete GPU device) for the fp32 one-shot
-    graphs in ``weights`` (``{name: path}``, block graphs beside), their fp16 conversions made
-    in ``work``, the benchmark windows in ``cases_dir`` and the ``(T, H, W)`` ``stream``."""
+    """Measure every planned row into ``section`` (:func:`measured_section`): each network of
+    ``graphs`` (``{name: make}``, ``make()`` gives its fp32 one-shot graph with its block graphs
+    beside, called when its first row comes) in fp32 and converted to fp16 in ``work``, by
+    workers running ``job`` (device, threads, repeats, the benchmark windows and stream);
+    ``on_row`` gets ``section`` after each row. A graph that cannot be made fails its rows,
+    not the run."""
+    graph = row_graphs(graphs, work, log)
+    for row in planned_rows():
+        section["rows"].append(measured_row(row, graph(row["weights"], row["precision"]), job, log))
+        if on_row is not None:
+            on_row(section)
+    return section
+
+
+def measured_section(device: str) -> dict:
+    """The GPU section before its rows: the device and the GPU's name."""
+    return {"device": device, "gpu": gpu_name(), "error": None, "rows": [], "service": None}
+
+
+def row_graphs(
+    graphs: dict[str, Callable[[], Path]], work: Path, log: Callable[[str], None]
+) -> Callable[[str, str], Path | None]:
+    """``graph(name, precision)``: the one-shot graph of a row, made once on first use (fp16:
+    the fp32 graph and its block graphs converted into ``work``), or ``None`` where it could
+    not be made (logged)."""
     from spk2img.export.quantize import reduce_block_graphs, reduce_precision
 
-    graphs: dict[tuple[str, str], Path] = {}
-    for name, fp32 in weights.items():
-        graphs[name, "fp32"] = fp32
-        fp16 = work / f"gpu-{name}-fp16.onnx"
-        reduce_precision(fp32, fp16, "fp16")
-        reduce_block_graphs(fp32, fp16, "fp16")
-        graphs[name, "fp16"] = fp16
-    rows = []
-    for row in planned_rows():
-        path = graphs.get((row["weights"], row["precision"]))
-        if path is None:
-            rows.append({**row, "error": f"no {row['weights']} graph to run"})
-            continue
-        spec = {
-            "job": "gpu",
-            "model": str(path),
-            "device": device,
-            "batch": row["batch"],
-            "self_ensemble": row["mode"] == SELF_ENSEMBLE,
-            "threads": [threads],
-            "repeats": repeats,
-            "cases": str(cases_dir),
-            "spikes": str(stream),
-        }
+    @functools.cache
+    def graph(name: str, precision: str) -> Path | None:
+        fp32 = None if precision == "fp32" else graph(name, "fp32")
         try:
-            result = run_job(spec, WORKER_TIMEOUT_S)
-        except WorkerError as exc:
-            rows.append({**row, "error": str(exc)})
-            log(f"GPU {row['weights']} {row['precision']} {row['mode']}: failed ({exc})")
-            continue
-        rows.append({**row, **result, "error": None})
-        log(
-            f"GPU {row['weights']} {row['precision']} {row['mode']}: "
-            f"{result['ms_per_frame']:.2f} ms/frame on {result['provider']}"
-        )
-    return {"device": device, "gpu": gpu_name(), "error": None, "rows": rows, "service": None}
+            if precision == "fp32":
+                return graphs[name]()
+            if fp32 is None:
+                return None
+            fp16 = work / f"gpu-{name}-fp16.onnx"
+            reduce_precision(fp32, fp16, "fp16")
+            reduce_block_graphs(fp32, fp16, "fp16")
+            return fp16
+        except Exception as exc:  # noqa: BLE001 - its rows report the failure
+            log(f"the {precision} graph of {name} for the GPU rows failed: {exc}")
+            return None
+
+    return graph
+
+
+def measured_row(row: dict, graph: Path | None, job: dict, log: Callable[[str], None]) -> dict:
+    """Planned ``row`` measured on ``graph`` by a worker running ``job`` (the device, threads,
+    repeats and data), or with the ``error`` that stopped it."""
+    if graph is None:
+        return {**row, "error": f"no {row['weights']} graph to run"}
+    spec = {**job, "model": str(graph), "batch": row["batch"]}
+    spec["self_ensemble"] = row["mode"] == SELF_ENSEMBLE
+    try:
+        result = run_job(spec, WORKER_TIMEOUT_S)
+    except WorkerError as exc:
+        log(f"GPU {row['weights']} {row['precision']} {row['mode']}: failed ({exc})")
+        return {**row, "error": str(exc)}
+    log(
+        f"GPU {row['weights']} {row['precision']} {row['mode']}: "
+        f"{result['ms_per_frame']:.2f} ms/frame on {result['provider']}"
+    )
+    return {**row, **result, "error": None}
 
 
 def gpu_service(
     device: str, model: Path, window: np.ndarray, threads: int, requests: int, log
 ) -> dict:
-    """The service on ``device`` with :data:`SERVICE_CLIENTS` concurrent clients (the CPU
-    load test's method, :func:`spk2img.bench.service_load.service_benchmark`); an ``error``
+    """The service on ``device`` with each of :data:`SERVICE_CLIENTS` concurrent clients (the
+    CPU load test's method, :func:`spk2img.bench.service_load.service_benchmark`); an ``error``
     when the service did not run the model on that device."""
     from .service_load import service_benchmark
 
     log(f"load-testing the service on {device} with {SERVICE_CLIENTS} clients")
     try:
-        result = service_benchmark(
-            model, window, threads, (SERVICE_CLIENTS,), requests, device=device
-        )
+        result = service_benchmark(model, window, threads, SERVICE_CLIENTS, requests, device=device)
     except (RuntimeError, OSError) as exc:
         return {"error": f"{type(exc).__name__}: {exc}"}
     return result

@@ -296,7 +296,7 @@ def gpu_table(results: dict) -> str:
     """The GPU rows (:mod:`spk2img.bench.gpu`): measured, or each marked not yet measured with
     the reason (a run from before the GPU rows existed had no GPU either: it ran on the CPU
     build of onnxruntime)."""
-    from .gpu import NO_GPU, SERVICE_CLIENTS, not_measured
+    from .gpu import NO_GPU, UNTRAINED, not_measured
 
     section = results.get("gpu") or not_measured()
     lines = ["## On a GPU", ""]
@@ -324,9 +324,8 @@ def gpu_table(results: dict) -> str:
     lines += table_head(cols)
     where = "none (no GPU)" if device is None else f"{section['gpu']} ({device})"
     for row in section["rows"]:
-        name = f"Spk2ImgNet {row['weights']}" + (
-            "" if row["weights"] == "shipped" else " (untrained)"
-        )
+        untrained = " (untrained)" if row["weights"] in UNTRAINED else ""
+        name = f"Spk2ImgNet {row['weights']}{untrained}"
         if device is None:
             cells = [NO_GPU, DASH]
         elif row.get("error"):
@@ -335,21 +334,33 @@ def gpu_table(results: dict) -> str:
             ms = row["ms_per_frame"]
             cells = [number(ms), number(1000.0 / ms)]
         lines.append(table_row([name, row["precision"], row["mode"], where, *cells]))
-    service = section.get("service")
-    served = f"service over HTTP, {SERVICE_CLIENTS} clients"
-    if device is None:
-        lines.append(table_row(["Spk2ImgNet shipped", "fp32", served, where, NO_GPU, DASH]))
-    elif service is None:
-        lines.append(table_row(["Spk2ImgNet shipped", "fp32", served, where, DASH, "not run"]))
-    elif "error" in service:
-        failed = f"failed ({service['error']})"
-        lines.append(table_row(["Spk2ImgNet shipped", "fp32", served, where, DASH, failed]))
-    else:
-        (level,) = service["levels"]
-        fps = level["service"]["frames_per_s"]
-        cells = ["Spk2ImgNet shipped", "fp32", served, f"{where}, {service['provider']}"]
-        lines.append(table_row([*cells, DASH, f"{fps:.2f}"]))
+    lines += [table_row(cells) for cells in service_rows(section.get("service"), device, where)]
     return "\n".join(lines) + "\n"
+
+
+def service_rows(service: dict | None, device: str | None, where: str) -> list[list[str]]:
+    """The cells of the GPU service rows, one per number of clients
+    (:data:`~spk2img.bench.gpu.SERVICE_CLIENTS`): measured, failed, not run or not measured."""
+    from .gpu import NO_GPU, SERVICE_CLIENTS
+
+    def served(clients: int) -> list[str]:
+        plural = "s" if clients > 1 else ""
+        return ["Spk2ImgNet shipped", "fp32", f"service over HTTP, {clients} client{plural}"]
+
+    if device is None:
+        return [[*served(n), where, NO_GPU, DASH] for n in SERVICE_CLIENTS]
+    if service is None or "error" in service:
+        failed = "not run" if service is None else f"failed ({service['error']})"
+        return [[*served(n), where, DASH, failed] for n in SERVICE_CLIENTS]
+    return [
+        [
+            *served(level["clients"]),
+            f"{where}, {service['provider']}",
+            DASH,
+            f"{level['service']['frames_per_s']:.2f}",
+        ]
+        for level in service["levels"]
+    ]
 
 
 def pareto_plot(results: dict, path: Path) -> None:

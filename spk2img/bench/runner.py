@@ -237,14 +237,18 @@ def natural_run(options: BenchOptions, log: Log) -> NaturalSet | None:
     return natural
 
 
-def run_gpu_only(options: BenchOptions, log: Log) -> dict:
-    """Only the GPU rows (:mod:`spk2img.bench.gpu`), on the benchmark set of ``options``."""
+def run_gpu_only(
+    options: BenchOptions, log: Log, on_row: Callable[[dict], None] | None = None
+) -> dict:
+    """Only the GPU rows (:mod:`spk2img.bench.gpu`), on the benchmark set of ``options``;
+    ``on_row`` gets the section measured so far after each row."""
     choice = gpu_decision(options, log)
     scale = options.scale
     with tempfile.TemporaryDirectory(prefix="spk2img-bench-") as tmp:
         work = Path(tmp)
         cases = benchmark_set(scale.per_class, scale.height, scale.width)
-        return gpu_run(options, choice, cases, cases.save_spikes(work / "cases"), work, log)
+        cases_dir = cases.save_spikes(work / "cases")
+        return gpu_run(options, choice, cases, cases_dir, work, log, on_row)
 
 
 def gpu_decision(options: BenchOptions, log: Log) -> tuple[str | None, str]:
@@ -269,33 +273,43 @@ def gpu_run(
     cases_dir: Path,
     work: Path,
     log: Log,
+    on_row: Callable[[dict], None] | None = None,
 ) -> dict:
     """The GPU section: measured on the device of ``choice`` (:func:`gpu_decision`), else the
-    planned rows marked not measured with its reason."""
+    planned rows marked not measured with its reason; ``on_row``: as
+    :func:`~spk2img.bench.gpu.gpu_benchmark`'s."""
     device, why = choice
     if device is None:
         return gpu.not_measured(why)
+    from spk2img.runtime.onnx_backend import shipped_models
+
     scale = options.scale
     shipped = artifacts.shipped()
-    weights = {"shipped": shipped.onnx}
-    log("exporting paper (random weights) for the GPU rows")
-    paper = artifacts.random_member("paper", work)
-    try:
-        artifacts.make_graph(paper, "onnx", work / "gpu-paper.onnx", None)
-        weights["paper"] = work / "gpu-paper.onnx"
-    except Exception as exc:  # noqa: BLE001 - its rows report the failure
-        log(f"export of paper for the GPU failed: {exc}")
-    stream = stream_file(scale, work, log)
+    installed = shipped_models()
+    graphs = {"shipped": lambda: shipped.onnx}
+    graphs |= {n: lambda n=n: installed[n] for n in gpu.WEIGHTS if n in installed}
+    graphs["paper"] = lambda: paper_graph(work, log)
     threads = max(options.threads)
-    result = gpu.gpu_benchmark(
-        device, weights, cases_dir, stream, threads, scale.repeats, work, log
-    )
-    if options.service:
+    job = {"job": "gpu", "device": device, "threads": [threads], "repeats": scale.repeats}
+    job |= {"cases": str(cases_dir), "spikes": str(stream_file(scale, work, log))}
+    section = gpu.measured_section(device)
+    if options.service:  # before the rows: a run cut short by a time limit keeps it
         window = np.array(cases.spikes[0])
-        result["service"] = gpu.gpu_service(
+        section["service"] = gpu.gpu_service(
             device, shipped.onnx, window, threads, scale.service_requests, log
         )
-    return result
+        if on_row is not None:
+            on_row(section)
+    return gpu.gpu_benchmark(section, graphs, job, work, log, on_row)
+
+
+def paper_graph(work: Path, log: Log) -> Path:
+    """The ``paper`` member's one-shot graph with random weights and its block graphs, exported
+    into ``work`` for the GPU rows."""
+    log("exporting paper (random weights) for the GPU rows")
+    path = work / "gpu-paper.onnx"
+    artifacts.make_graph(artifacts.random_member("paper", work), "onnx", path, None, True)
+    return path
 
 
 def stream_file(scale: Scale, work: Path, log: Log) -> Path:

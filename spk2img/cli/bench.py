@@ -121,8 +121,10 @@ def run(args: argparse.Namespace) -> int:
     if args.gpu_only:
         if not (args.out_dir / "bench.json").is_file():
             raise InputError(f"--gpu-only: no bench.json in {args.out_dir} to add the rows to")
-        section = run_gpu_only(options, log) | {"command": options.command}
-        log(f"wrote {add_gpu_rows(args.out_dir, section)}")
+        def write(section: dict) -> Path:  # after every row too: a run cut short keeps them
+            return add_gpu_rows(args.out_dir, section | {"command": options.command})
+
+        log(f"wrote {write(run_gpu_only(options, log, write))}")
         return 0
     if args.streaming_only:
         results = run_streaming_only(options, log)
