@@ -1,8 +1,9 @@
 """What a GPU session brought back, put where the project keeps it (docs/gpu.md, "A GPU session").
 
 ``python scripts/gpu_results.py FILES_AT [--state-dir training_state] [--runs runs] [--docs
-docs]`` reads the folder the session's files came back to (``report.tar.gz``,
-``NAME-last.pt``, ``NAME-best.pt``; ``scripts/gpu_session.sh session`` and ``more``):
+docs]`` reads the folder a command's files came back to: ``report.tar.gz``, ``NAME-last.pt``,
+``NAME-best.pt`` from ``scripts/gpu_session.sh session`` and ``more``; ``bench/``,
+``verify_fp16_cuda.txt``, ``onnxruntime.txt`` and ``tensorrt.txt`` from its ``onnx`` step:
 
 - each run's ``metrics.jsonl`` into ``STATE_DIR/NAME/`` (its whole log: a later ``more``
   brings the log again, longer), and its ``last.pt`` there as its weights alone in fp16 (what
@@ -11,7 +12,11 @@ docs]`` reads the folder the session's files came back to (``report.tar.gz``,
 - both checkpoints as they came into ``RUNS/NAME/`` (git-ignored), to score them here;
 - the torch inference rows (``torch_inference.json``) into ``DOCS/gpu_torch_inference.json``
   and, as a table, ``DOCS/gpu_torch_inference.md``; the synthesis speed
-  (``synthesis_speed_gpu.json``) and ``environment.txt`` into ``DOCS/`` as they are.
+  (``synthesis_speed_gpu.json``) and ``environment.txt`` into ``DOCS/`` as they are;
+- the bench's GPU section (``bench/bench.json``) into ``DOCS/bench.json``, with
+  ``DOCS/bench.md`` rewritten from it (the CPU rows stay as they were measured), and the fp16
+  parity on the GPU, onnxruntime's providers and TensorRT's probe into ``DOCS/`` (prefixed
+  ``gpu_``).
 
 It prints, per run, the steps it reached, its median steps a second and samples a second, and
 its last validation, then the commands that score its checkpoints on the real-video
@@ -85,11 +90,33 @@ def inference_table(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+ONNX_FILES = ("verify_fp16_cuda.txt", "onnxruntime.txt", "tensorrt.txt")
+"""What the ``onnx`` step writes beside ``bench/``, filed in docs/ as ``gpu_NAME``."""
+
+
+def take_onnx_results(files_at: Path, docs: Path) -> list[str]:
+    """The ``onnx`` step's bench section and files into ``docs`` (module doc)."""
+    from spk2img.cli.bench import add_gpu_rows
+
+    section = json.loads((files_at / "bench" / "bench.json").read_text())["gpu"]
+    add_gpu_rows(docs, section)
+    measured = [row for row in section["rows"] if row.get("ms_per_frame")]
+    said = [f"GPU bench rows: {len(measured)} of {len(section['rows'])} measured, into {docs}"]
+    for name in ONNX_FILES:
+        if (files_at / name).is_file():
+            shutil.copyfile(files_at / name, docs / f"gpu_{name}")
+        else:
+            said.append(f"no {name} came back")
+    return said
+
+
 def take_results(files_at: Path, state_dir: Path, runs: Path, docs: Path) -> list[str]:
     """Put what came back in its places (module doc); returns what was said, a line each."""
     said = []
+    if (files_at / "bench" / "bench.json").is_file():
+        said += take_onnx_results(files_at, docs)
     if not (files_at / REPORT).is_file():
-        return [f"{files_at}: no {REPORT}: the session brought back no report"]
+        return [*said, f"{files_at}: no {REPORT}: this command brought back no training report"]
     report = read_report(files_at)
     docs.mkdir(parents=True, exist_ok=True)
     written = sorted({path.split("/")[0] for path in report if path.endswith("metrics.jsonl")})

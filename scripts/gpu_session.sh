@@ -4,6 +4,8 @@
 # Here, before the session:
 #   scripts/gpu_session.sh prepare DATA         # the training data as one part that fits beside
 #                                               # this checkout in one command (pack/, git-ignored)
+#   scripts/gpu_session.sh prepare-onnx [ARCH]  # onnxruntime-gpu for sm_ARCH (90: H100, H200) in
+#                                               # parts of that size (pack-onnx/, git-ignored)
 # There, run from the checkout, with `pack` carried:
 #   scripts/gpu_session.sh session SECONDS      # env, torch inference rows, synthesis speed,
 #                                               # then the runs of scripts/gpu_runs.txt trained
@@ -11,7 +13,8 @@
 #   scripts/gpu_session.sh more SECONDS         # the next command, while the machine is warm:
 #                                               # the same runs resumed for SECONDS
 #   scripts/gpu_session.sh receive MANIFEST DEST # one part of a split file (receive_parts.sh)
-#   scripts/gpu_session.sh onnx                  # onnxruntime-gpu rows (after receiving its wheel)
+#   scripts/gpu_session.sh onnx                  # onnxruntime-gpu rows (after receiving it): the
+#                                               # bench's GPU rows, fp16 parity, TensorRT's probe
 #   scripts/gpu_session.sh train-start NAME SECONDS ARGS…
 #                                 # one run in the background (its own process session, so it
 #                                 # outlives the command) in /tmp/spk2img-runs/NAME
@@ -30,7 +33,8 @@ runs=${SPK2IMG_RUNS:-/tmp/spk2img-runs}   # where the runs train
 data=${SPK2IMG_DATA:-/tmp/spk2img-data}   # where session unpacks the training data
 run_list=${SPK2IMG_SESSION_RUNS:-scripts/gpu_runs.txt}
 pack=${SPK2IMG_PACK:-pack}   # the folder prepare writes and the session's command carries
-step=${1:?prepare, session, more, receive, onnx, train-start or train-stop}
+ort_version=1.31.1   # the newest onnxruntime-gpu (docs/gpu.md), for the GPU machine's Python 3.12
+step=${1:?prepare, prepare-onnx, session, more, receive, onnx, train-start or train-stop}
 shift
 
 start_run() {  # NAME SECONDS ARGS…: train in the background, SIGINT after SECONDS
@@ -119,6 +123,40 @@ case "$step" in
       --max-mib "$room" --part-mib "$room"
     echo "carry: $pack ($room MiB beside the checkout)"
     ;;
+  prepare-onnx)
+    # here: onnxruntime-gpu with the CUDA kernels of one architecture, in parts of the room, and
+    # the serve extra's wheels that the GPU machine's image lacks (for the service's GPU rows)
+    arch=${1:-90}
+    room=$(python -m spk2img.parts room .)
+    wheel=wheels/onnxruntime_gpu-$ort_version-cp312-cp312-manylinux_2_28_x86_64.whl
+    slim=wheels/onnxruntime-gpu-$ort_version-sm_$arch.tar.xz
+    for312=(--only-binary=:all: --python-version 3.12 --implementation cp
+      --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64
+      --platform manylinux2014_x86_64)
+    [ -f "$wheel" ] || pip download "onnxruntime-gpu==$ort_version" --no-deps -d wheels "${for312[@]}"
+    python scripts/slim_onnxruntime_gpu.py "$wheel" --arch "$arch" --out "$slim"
+    rm -rf pack-onnx
+    python -m spk2img.parts split "$slim" --out pack-onnx --part-mib "$room"
+    # shellcheck disable=SC2046  # the serve extra's pins, one word each
+    pip download -q -d pack-onnx/serve-wheels "${for312[@]}" $(python -c "import tomllib
+extra = tomllib.load(open('pyproject.toml', 'rb'))['project']['optional-dependencies']['serve']
+print(*(pin for pin in extra if not pin.startswith('onnxruntime')))")
+    manifest=pack-onnx/$(basename "$slim").parts.json
+    parts=(pack-onnx/*.part-*)
+    receive="scripts/gpu_session.sh receive $manifest $ort"
+    for part in "${parts[@]}"; do
+      carry="\"$manifest\", \"$part\""
+      if [ "$part" = "${parts[-1]}" ]; then
+        carry="$carry, \"pack-onnx/serve-wheels\""
+        receive="$receive && scripts/gpu_session.sh onnx"
+      fi
+      echo "carry [$carry]: $receive"
+    done
+    last=$(( $(stat -c %s "${parts[-1]}") + $(du -sb pack-onnx/serve-wheels | cut -f1) ))
+    python -c "import sys; assert int(sys.argv[1]) <= float(sys.argv[2]) * 2**20, \
+      'the last part and the serve wheels exceed the room: carry the wheels in a command of their own'" \
+      "$last" "$room"
+    ;;
   session)
     seconds=${1:?seconds of training}
     { python3 --version; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
@@ -148,6 +186,10 @@ case "$step" in
     scripts/receive_parts.sh "$@"
     ;;
   onnx)
+    if [ -d pack-onnx/serve-wheels ]; then  # carried: what the service needs beside onnxruntime
+      python3 -m pip install -q --no-index --no-deps --no-compile --target "$ort" \
+        pack-onnx/serve-wheels/*.whl
+    fi
     export PYTHONPATH="$ort:$PYTHONPATH"
     # the CUDA libraries of torch's nvidia wheels, for every process onnxruntime-gpu runs in
     nvidia=$(python3 -c "import nvidia; print(list(nvidia.__path__)[0])")
@@ -155,10 +197,17 @@ case "$step" in
     export LD_LIBRARY_PATH="$libs${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
     python3 -c "import onnxruntime as o; o.preload_dlls(); print(o.__version__, o.get_available_providers())" \
       | tee "$out/onnxruntime.txt"
-    timeout 420 python3 -m spk2img bench --gpu-only --device cuda --out-dir "$out/bench" \
-      || echo "bench: exit $?"
-    timeout 150 python3 -m spk2img verify spk2img/assets/models/spk2img-default.onnx \
+    # the GPU rows go into a copy of this checkout's bench (rewritten after each row, so the
+    # time limit keeps what was measured); the fp16 parity on the hard cases; TensorRT's probe
+    mkdir -p "$out/bench" && cp docs/bench.json docs/bench.md "$out/bench/"
+    timeout "${SPK2IMG_BENCH_S:-240}" python3 -m spk2img bench --gpu-only --device cuda \
+      --repeats 3 --out-dir "$out/bench" > "$out/bench/bench.log" 2>&1 || echo "bench: exit $?"
+    tail -n 5 "$out/bench/bench.log"
+    timeout 90 python3 -m spk2img verify spk2img/assets/models/spk2img-default.onnx \
       --device cuda --fp16 --quick > "$out/verify_fp16_cuda.txt" 2>&1 || echo "verify: exit $?"
+    timeout 45 python3 -m spk2img reconstruct examples/fast_motion_250x400.dat \
+      --out /tmp/spk2img-trt.npz --device tensorrt > "$out/tensorrt.txt" 2>&1 \
+      || echo "tensorrt: exit $?"
     ;;
   train-start)
     start_run "$@"
@@ -169,7 +218,8 @@ case "$step" in
     bring_back "$name"
     ;;
   *)
-    echo "unknown step $step: prepare, session, more, receive, onnx, train-start or train-stop" >&2
+    echo "unknown step $step: prepare, prepare-onnx, session, more, receive, onnx, train-start" \
+      "or train-stop" >&2
     exit 2
     ;;
 esac

@@ -6,6 +6,8 @@
 # commands while the machine is warm); the command that brings the last part joins them,
 # checks every SHA-256, and unpacks into DEST:
 #   a .zip (the training-data pack)       -> extracted into DEST/
+#   a .tar.xz (onnxruntime-gpu for one GPU architecture, scripts/slim_onnxruntime_gpu.py)
+#                                         -> extracted into DEST/ (for PYTHONPATH)
 #   a .whl (e.g. onnxruntime-gpu)         -> pip install --no-deps --target DEST
 #   anything else                         -> moved to DEST
 # Usage: scripts/receive_parts.sh MANIFEST DEST
@@ -21,6 +23,8 @@ name=$(basename "$manifest" .parts.json)
 "$python" -m spk2img.parts join "$store/$name.parts.json" --out "$store/$name"
 case "$name" in
   *.zip) mkdir -p "$dest" && "$python" -m zipfile -e "$store/$name" "$dest" ;;
+  *.tar.xz) mkdir -p "$dest" && "$python" -c "import sys, tarfile
+tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')" "$store/$name" "$dest" ;;
   *.whl) "$python" -m pip install --quiet --no-deps --target "$dest" "$store/$name" ;;
   *) mv "$store/$name" "$dest" ;;
 esac

@@ -53,6 +53,7 @@ COMMANDS = {  # argv -> the extra it needs (None: the base install runs it)
     "verify m.onnx": "export",
     "serve --port 8123": "serve",
     "bench --quick": "all",
+    "bench --gpu-only --out-dir d": "export",  # the GPU machine's image has no fastapi or PyAV
 }
 
 

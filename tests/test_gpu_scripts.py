@@ -3,10 +3,13 @@
 import importlib.util
 import json
 import os
+import shutil
+import struct
 import subprocess
 import sys
 import tarfile
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -145,3 +148,142 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
     assert torch.load(tmp_path / "out" / "t-last.pt", weights_only=True)["step"] == resumed["step"]
     assert "Traceback" not in (tmp_path / "out" / "report" / "t" / "train.log").read_text()
     assert "not running" in session("train-stop", "t")
+
+
+def fake_cuda_library(containers: list[list[tuple[int, bytes]]]) -> tuple[bytes, int, int]:
+    """A 64-bit ELF file whose ``.nv_fatbin`` section holds ``containers`` (fat binaries, each
+    a list of ``(arch, cubin)`` entries, zero padding between them), with other bytes around
+    it; the file and the section's offset and size."""
+    slim = load_script("slim_onnxruntime_gpu")
+    fatbin = b""
+    for entries in containers:
+        body = b"".join(
+            slim.ENTRY_HEADER.pack(2, 0x0101, 64, len(cubin))
+            + bytes(slim.ENTRY_ARCH_OFFSET - slim.ENTRY_HEADER.size)
+            + arch.to_bytes(4, "little")
+            + bytes(32)
+            + cubin
+            for arch, cubin in entries
+        )
+        fatbin += slim.CONTAINER_HEADER.pack(slim.FATBIN_MAGIC, 1, 16, len(body)) + body
+        fatbin += bytes(8)
+    names = b"\0.shstrtab\0.nv_fatbin\0"
+    code = b"host code" * 10
+    offset = 64 + len(code)
+    shoff = offset + len(fatbin) + len(names)
+    header = b"\x7fELF\x02\x01\x01" + bytes(33) + shoff.to_bytes(8, "little") + bytes(10)
+    header += (64).to_bytes(2, "little") + (3).to_bytes(2, "little") + (1).to_bytes(2, "little")
+    assert len(header) == 64
+
+    def section(name_at: int, at: int, size: int) -> bytes:
+        return name_at.to_bytes(4, "little") + bytes(20) + struct.pack("<QQ", at, size) + bytes(24)
+
+    table = (
+        bytes(64) + section(1, offset + len(fatbin), len(names)) + section(11, offset, len(fatbin))
+    )
+    return header + code + fatbin + names + table, offset, len(fatbin)
+
+
+def test_slim_onnxruntime_gpu_keeps_one_architectures_cubins_in_place(tmp_path, capsys):
+    """Each fat binary keeps its sm_90 entries byte for byte at its own address; the others'
+    bytes are zeroed; one without sm_90 stays whole; every other file of the wheel is as it was
+    (RECORD, whose hashes no longer hold, is left out); bad input is one line and exit 2."""
+    slim = load_script("slim_onnxruntime_gpu")
+    rng = np.random.default_rng(0)
+    cubin = {arch: [rng.bytes(40 + 8 * i) for i in range(3)] for arch in (80, 90, 120)}
+    containers = [
+        [(80, cubin[80][0]), (90, cubin[90][0]), (120, cubin[120][0])],
+        [(120, cubin[120][1])],  # no sm_90: left whole
+        [(90, cubin[90][1]), (80, cubin[80][1]), (90, cubin[90][2])],
+    ]
+    library, offset, size = fake_cuda_library(containers)
+    wheel = tmp_path / "onnxruntime_gpu-9.9-cp312-cp312-manylinux_2_28_x86_64.whl"
+    with zipfile.ZipFile(wheel, "w") as z:
+        z.writestr("onnxruntime/__init__.py", "version = 9.9\n")
+        z.writestr("onnxruntime/capi/libonnxruntime_providers_cuda.so", library)
+        z.writestr("onnxruntime_gpu-9.9.dist-info/RECORD", "hashes\n")
+    out = tmp_path / "ort.tar.xz"
+    assert slim.main([str(wheel), "--arch", "90", "--out", str(out)]) == 0
+    with tarfile.open(out) as t:
+        assert sorted(t.getnames()) == [
+            "onnxruntime/__init__.py",
+            "onnxruntime/capi/libonnxruntime_providers_cuda.so",
+        ]
+        assert t.extractfile("onnxruntime/__init__.py").read() == b"version = 9.9\n"
+        slimmed = t.extractfile("onnxruntime/capi/libonnxruntime_providers_cuda.so").read()
+    assert len(slimmed) == len(library) and slim.elf_section(slimmed, ".nv_fatbin") == (
+        offset,
+        size,
+    )
+    assert (
+        slimmed[:offset] == library[:offset]
+        and slimmed[offset + size :] == library[offset + size :]
+    )
+    seen, at = [], offset
+    while at < offset + size:  # the containers where they were, with what they keep
+        magic, _, header, payload = slim.CONTAINER_HEADER.unpack_from(slimmed, at)
+        if magic != slim.FATBIN_MAGIC:
+            at += 8
+            continue
+        found = slim.entries(slimmed, at + header, at + header + payload)
+        seen.append([(arch, slimmed[o + 64 : o + n]) for o, n, arch in found])
+        (start,) = slim.CONTAINER_HEADER.unpack_from(library, at)[:1]
+        assert start == slim.FATBIN_MAGIC  # a container starts where one started before
+        at += header + slim.CONTAINER_HEADER.unpack_from(library, at)[3]
+    assert seen == [
+        [(90, cubin[90][0])],
+        [(120, cubin[120][1])],
+        [(90, cubin[90][1]), (90, cubin[90][2])],
+    ]
+    summary = json.loads(Path(f"{out}.json").read_text())
+    assert summary["fatbin"]["containers_left_whole"] == 1
+    assert summary["fatbin"]["kept"] == {
+        "90": sum(len(c) + 64 for c in cubin[90]),
+        "120": len(cubin[120][1]) + 64,
+    }
+    assert "kept sm_90" in capsys.readouterr().out
+
+    assert slim.main([str(wheel), "--arch", "75", "--out", str(out)]) == 2
+    assert "holds no cubin for sm_75" in capsys.readouterr().err
+    not_elf = tmp_path / "not_elf.whl"
+    with zipfile.ZipFile(not_elf, "w") as z:
+        z.writestr("onnxruntime/capi/libonnxruntime_providers_cuda.so", b"text")
+    assert slim.main([str(not_elf), "--out", str(out)]) == 2
+    assert "not a 64-bit little-endian ELF file" in capsys.readouterr().err
+
+
+def test_gpu_results_files_the_onnx_steps_rows_into_the_bench(tmp_path):
+    """The ``onnx`` step's GPU section replaces docs' (the CPU rows stay), bench.md's GPU table
+    is replaced by its rows (the rest, notes written by hand included, stays), and its text
+    files are kept beside; what did not come back is named."""
+    from spk2img.bench import gpu
+
+    came, docs = tmp_path / "came", tmp_path / "docs"
+    (came / "bench").mkdir(parents=True)
+    docs.mkdir()
+    shutil.copy(ROOT / "docs" / "bench.json", docs / "bench.json")
+    before = (ROOT / "docs" / "bench.md").read_text()
+    (docs / "bench.md").write_text(
+        before.replace("## Speed and error", "A note.\n\n## Speed and error")
+    )
+    section = gpu.measured_section("cuda") | {"gpu": "NVIDIA H200"}
+    section["rows"] = [{**r, "ms_per_frame": 4.0, "error": None} for r in gpu.planned_rows()[:3]]
+    bench = json.loads((docs / "bench.json").read_text()) | {"gpu": section}
+    (came / "bench" / "bench.json").write_text(json.dumps(bench))
+    (came / "verify_fp16_cuda.txt").write_text("every case passed\n")
+    said = load_script("gpu_results").take_results(came, tmp_path / "s", tmp_path / "r", docs)
+    assert said[0] == f"GPU bench rows: 3 of 3 measured, into {docs}"
+    assert "no onnxruntime.txt came back" in said and "no tensorrt.txt came back" in said
+    assert said[-1].endswith("this command brought back no training report")
+    filed = json.loads((docs / "bench.json").read_text())
+    assert filed["gpu"]["rows"] == section["rows"]
+    assert filed["rows"] == json.loads((ROOT / "docs" / "bench.json").read_text())["rows"]
+    after = (docs / "bench.md").read_text()
+    assert after.count("NVIDIA H200 (cuda) | 4.00 | 250 |") == 3 and "A note.\n" in after
+    assert after.count(gpu.NO_GPU) == 0 and "not run" in after  # the service's rows
+    heading = after.index("## On a GPU")
+    assert after[:heading] == before[: before.index("## On a GPU")].replace(
+        "## Speed and error", "A note.\n\n## Speed and error"
+    )
+    assert after[after.index("![PSNR") :] == before[before.index("![PSNR") :]
+    assert (docs / "gpu_verify_fp16_cuda.txt").read_text() == "every case passed\n"

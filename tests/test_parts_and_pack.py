@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tarfile
 import zipfile
 from pathlib import Path
 from unittest import mock
@@ -290,14 +291,21 @@ def test_pack_data_says_what_a_compact_pack_kept(collection, tmp_path, capsys):
     assert "too little for any training source" in err and "--max-mib -1: must be" in err
 
 
-def test_the_receiving_script_gathers_a_part_per_command_and_unpacks_the_last(tmp_path):
+@pytest.mark.parametrize("kind", ["zip", "tar.xz"])
+def test_the_receiving_script_gathers_a_part_per_command_and_unpacks_the_last(tmp_path, kind):
     """scripts/receive_parts.sh run once per command, each with one part beside the manifest
     (as a GPU machine receives them): it says what is missing until the last part, then joins
-    and extracts the archive."""
-    archive = tmp_path / "data.zip"
+    and extracts the archive (the training-data pack's zip, slim onnxruntime-gpu's tar.xz)."""
+    archive = tmp_path / f"data.{kind}"
     payload = np.random.default_rng(2).bytes(5000)
-    with zipfile.ZipFile(archive, "w") as z:
-        z.writestr("photos/a.bin", payload)
+    if kind == "zip":
+        with zipfile.ZipFile(archive, "w") as z:
+            z.writestr("photos/a.bin", payload)
+    else:
+        (tmp_path / "photos").mkdir()
+        (tmp_path / "photos" / "a.bin").write_bytes(payload)
+        with tarfile.open(archive, "w:xz") as t:
+            t.add(tmp_path / "photos", "photos")
     manifest = split(archive, tmp_path / "parts", 2000)
     env = {**os.environ, "PARTS_STORE": str(tmp_path / "store"), "PYTHON": sys.executable}
     outputs = []
@@ -316,6 +324,6 @@ def test_the_receiving_script_gathers_a_part_per_command_and_unpacks_the_last(tm
             check=True,
         )
         outputs.append(done.stdout)
-    assert "still missing" in outputs[0] and "data.zip.part-002" in outputs[1]
-    assert "received data.zip" in outputs[-1]
+    assert "still missing" in outputs[0] and f"data.{kind}.part-002" in outputs[1]
+    assert f"received data.{kind}" in outputs[-1]
     assert (tmp_path / "dest" / "photos" / "a.bin").read_bytes() == payload

@@ -292,6 +292,10 @@ def service_table(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+GPU_HEADING = "## On a GPU"
+"""The heading of :func:`gpu_table`'s section."""
+
+
 def gpu_table(results: dict) -> str:
     """The GPU rows (:mod:`spk2img.bench.gpu`): measured, or each marked not yet measured with
     the reason (a run from before the GPU rows existed had no GPU either: it ran on the CPU
@@ -299,7 +303,7 @@ def gpu_table(results: dict) -> str:
     from .gpu import NO_GPU, UNTRAINED, not_measured
 
     section = results.get("gpu") or not_measured()
-    lines = ["## On a GPU", ""]
+    lines = [GPU_HEADING, ""]
     device = section["device"]
     if device is None:
         lines += [

@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
     if args.gpu_only:
         if not (args.out_dir / "bench.json").is_file():
             raise InputError(f"--gpu-only: no bench.json in {args.out_dir} to add the rows to")
+
         def write(section: dict) -> Path:  # after every row too: a run cut short keeps them
             return add_gpu_rows(args.out_dir, section | {"command": options.command})
 
@@ -143,18 +144,42 @@ def run(args: argparse.Namespace) -> int:
 
 
 def add_gpu_rows(directory: Path, section: dict) -> Path:
-    """Put the GPU ``section`` into ``directory``'s bench.json and rewrite its bench.md from
-    it (the other rows stay as they were measured); the bench.md path."""
+    """Put the GPU ``section`` into ``directory``'s bench.json and its table into bench.md in
+    place of the GPU section there (the rest of bench.md, notes added by hand included, stays;
+    a bench.md without one is rewritten from bench.json); the bench.md path."""
     import json
 
-    from spk2img.bench.report import JSON_NAME, MD_NAME, markdown
+    from spk2img.bench.report import JSON_NAME, MD_NAME, gpu_table, markdown
 
     path = directory / JSON_NAME
     results = json.loads(path.read_text())
     results["gpu"] = section
-    path.write_text(json.dumps(results, indent=1) + "\n")
-    (directory / MD_NAME).write_text(markdown(results))
-    return directory / MD_NAME
+    md = directory / MD_NAME
+    text = md.read_text() if md.is_file() else ""
+    # each file whole or not at all: a run stopped while writing keeps the last rows written
+    for target, content in (
+        (path, json.dumps(results, indent=1) + "\n"),
+        (md, replace_gpu_section(text, gpu_table(results)) or markdown(results)),
+    ):
+        partial = target.with_name(target.name + ".writing")
+        partial.write_text(content)
+        partial.replace(target)
+    return md
+
+
+def replace_gpu_section(text: str, table: str) -> str | None:
+    """``text`` (a bench.md) with its GPU section, from its heading to the end of its table,
+    replaced by ``table``; ``None`` when it has none."""
+    from spk2img.bench.report import GPU_HEADING
+
+    start = text.find(GPU_HEADING + "\n")
+    if start < 0:
+        return None
+    lines = text[start:].split("\n")
+    first = next((i for i, line in enumerate(lines) if line.startswith("|")), len(lines))
+    last = next((i for i in range(first, len(lines)) if not lines[i].startswith("|")), len(lines))
+    end = start + len("\n".join(lines[:last]))
+    return text[:start] + table.rstrip("\n") + text[end:]
 
 
 def out_dir(args: argparse.Namespace, now: datetime | None = None) -> Path:

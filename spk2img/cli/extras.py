@@ -67,7 +67,8 @@ def required_extra(args: argparse.Namespace) -> Need | None:
       onnxruntime from the serve extra, or torch from the train extra with ``--backend torch``;
       ``tfp``, ``tfi`` and ``--quality fast`` nothing.
     - ``models``: torch (train extra); ``train``: the train extra; ``export`` and ``verify``: the
-      export extra; ``serve``: the serve extra; ``bench``: every extra (``all``).
+      export extra; ``serve``: the serve extra; ``bench``: every extra (``all``), but with
+      ``--gpu-only`` the export extra (its service rows say so when the serve extra is absent).
     - ``simulate``, ``fit-sensor``: nothing.
     """
     command = args.command
@@ -87,6 +88,8 @@ def required_extra(args: argparse.Namespace) -> Need | None:
         return Need("export", command, EXTRA_MODULES["export"])
     if command == "serve":
         return Need("serve", "serving", EXTRA_MODULES["serve"])
+    if command == "bench" and getattr(args, "gpu_only", False):
+        return Need("export", "bench --gpu-only", EXTRA_MODULES["export"])
     if command == "bench":
         return Need("all", "bench", EXTRA_MODULES["all"])
     return None
