@@ -52,12 +52,34 @@ def test_torch_inference_speed_times_each_precision_and_batch_and_its_error(tmp_
     assert table[-1].startswith("| tiny | fp16 | 2 | ") and table[6].endswith("| — |")
 
 
+NOT_ON_THE_GPU_IMAGE = ("av", "fastapi", "uvicorn", "pydantic", "pydantic_settings", "starlette")
+"""Modules of the project's extras that the lent GPU machines' image does not have (its package
+list, as sessions there saw it): the session's steps must run without them."""
+
+
+def image_without(site: Path, modules: tuple[str, ...]) -> Path:
+    """A folder for ``PYTHONPATH`` whose ``sitecustomize`` makes ``modules`` unimportable in
+    every Python process started with it, as on a machine without them."""
+    site.mkdir(parents=True, exist_ok=True)
+    (site / "sitecustomize.py").write_text(
+        "import sys\n\n\n"
+        "class Absent:\n"
+        f"    names = {set(modules)!r}\n\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.partition('.')[0] in self.names:\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n\n\n"
+        "sys.meta_path.insert(0, Absent())\n"
+    )
+    return site
+
+
 def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tmp_path):
     """``gpu_session.sh session`` (on the CPU here: the last ``--device`` wins) unpacks the
     one-part training pack, trains the listed runs for the seconds given, stops them at a step
     they save and brings back their logs, metrics and checkpoints, under 8 files; a run
     started in the background with ``train-start`` (here: the same run, resumed) returns at
-    once, and ``train-stop`` stops it with Ctrl-C and brings it back too."""
+    once, and ``train-stop`` stops it with Ctrl-C and brings it back too. Its processes run
+    without the modules the GPU machines' image lacks (:data:`NOT_ON_THE_GPU_IMAGE`)."""
     data = tmp_path / "collection"  # any name: the session reads it from PACK.json
     (data / "photos").mkdir(parents=True)
     rng = np.random.default_rng(0)
@@ -85,6 +107,7 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
         "SPK2IMG_SESSION_MEASURE": "0",
         "PARTS_STORE": str(tmp_path / "parts"),
         "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",  # its python3
+        "PYTHONPATH": str(image_without(tmp_path / "site", NOT_ON_THE_GPU_IMAGE)),
     }
 
     def session(*args: str) -> str:

@@ -2,6 +2,7 @@
 training from folders. The tests make their own tiny photo and clip folders."""
 
 import json
+import sys
 import warnings
 from pathlib import Path
 
@@ -9,7 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from spk2img.cli import main
+from spk2img.cli import build_parser, main
+from spk2img.cli.extras import required_extra
 from spk2img.evaluation.metrics import psnr
 from spk2img.sim.natural_scenes import (
     CLIP_MARGIN,
@@ -96,6 +98,21 @@ def test_the_index_finds_photos_frame_folders_and_videos_and_skips_bad_files(dat
     assert index.skipped == {"unreadable": 1, "too small": 1, "held out": 1}
     assert any("skipped" in str(w.message) for w in caught)
     assert index.summary()["video_files"] == 1
+
+
+def test_without_pyav_a_run_skips_its_video_files_and_says_why(data_dir, monkeypatch):
+    """The GPU machines' image has no PyAV: ``spk2img train`` still runs there (it needs torch
+    and OpenCV only) and a video file is one more unreadable source, named with the reason."""
+    monkeypatch.setitem(sys.modules, "av", None)  # import av: ImportError
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        index = SourceIndex.scan([data_dir], min_side=32)
+    assert index.summary()["video_files"] == 0 and len(index.clips) == 2
+    assert index.skipped["unreadable"] == 2  # broken.png and pan.mp4
+    (said,) = [str(w.message) for w in caught if "pan.mp4" in str(w.message)]
+    assert said.endswith("(video files need PyAV, the train extra)")
+    need = required_extra(build_parser().parse_args(["train", "--steps", "1"]))
+    assert "av" not in need.modules and {"torch", "cv2"} <= set(need.modules)
 
 
 def test_frames_are_luminance_made_light_by_either_convention(data_dir):

@@ -49,6 +49,8 @@ EXTRA_MODULES: dict[str, tuple[str, ...]] = {
 }
 """The top-level modules each extra of pyproject.toml installs (``all`` with ``dev``'s
 matplotlib, which ``bench`` plots with)."""
+TRAINING_MODULES = tuple(m for m in EXTRA_MODULES["train"] if m != "av")
+"""What ``spk2img train`` cannot run without (PyAV only decodes video files)."""
 
 
 @dataclass(frozen=True)
@@ -66,7 +68,9 @@ def required_extra(args: argparse.Namespace) -> Need | None:
     - ``reconstruct``: ``--url`` the client extra; ``--method net`` (quality best or balanced)
       onnxruntime from the serve extra, or torch from the train extra with ``--backend torch``;
       ``tfp``, ``tfi`` and ``--quality fast`` nothing.
-    - ``models``: torch (train extra); ``train``: the train extra; ``export`` and ``verify``: the
+    - ``models``: torch (train extra); ``train``: the train extra's torch and OpenCV (PyAV only
+      decodes video files, which a run without it skips and names, as any unreadable source:
+      the GPU machines' image has no PyAV); ``export`` and ``verify``: the
       export extra; ``serve``: the serve extra; ``bench``: every extra (``all``), but with
       ``--gpu-only`` the export extra (its service rows say so when the serve extra is absent).
     - ``simulate``, ``fit-sensor``: nothing.
@@ -83,7 +87,7 @@ def required_extra(args: argparse.Namespace) -> Need | None:
     if command == "models":
         return Need("train", "models", ("torch",))
     if command == "train":
-        return Need("train", "training", EXTRA_MODULES["train"])
+        return Need("train", "training", TRAINING_MODULES)
     if command in ("export", "verify"):
         return Need("export", command, EXTRA_MODULES["export"])
     if command == "serve":

@@ -156,7 +156,10 @@ class SourceIndex:
             height, width = _size(source)
         except (OSError, UnidentifiedImageError, ValueError, ImportError) as exc:
             self.skipped["unreadable"] += 1
-            warnings.warn(f"training data: cannot read {_where(source)}: {exc}", stacklevel=3)
+            hint = (
+                " (video files need PyAV, the train extra)" if isinstance(exc, ImportError) else ""
+            )
+            warnings.warn(f"training data: cannot read {_where(source)}: {exc}{hint}", stacklevel=3)
             return
         if min(height, width) < min_side:
             self.skipped["too small"] += 1
