@@ -93,6 +93,12 @@ NOT_RUN = {
         "# here: split",
     ): "needs the package registry and a GPU machine",
     (
+        "docs/gpu.md",
+        "scripts/gpu_session.sh prepare-onnx        # here, 90 s: download, slim, split into "
+        "pack-onnx/",
+    ): "downloads the 256 MB onnxruntime-gpu wheel (tests run offline; "
+    "tests/test_gpu_scripts.py slims a synthetic one)",
+    (
         "docs/sensor.md",
         "spk2img fit-sensor CAPTURE [--height 250 --width 400] [--out PRESET.json]",
     ): "a synopsis (placeholders)",
