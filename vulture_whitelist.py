@@ -71,3 +71,8 @@ _.force_exit
 
 # pydantic field validator of ServiceSettings, called by pydantic
 _._device_runs_here  # spk2img.service.settings
+
+# used by scripts/spike_reds_benchmark.py (scripts are not scanned) and the tests
+_.toolkit_data_root  # spk2img/evaluation/spike_reds.py
+_.find_streams
+_.load_window

@@ -1,6 +1,5 @@
 """The scripts a lent GPU runs, checked on the CPU at small sizes (they name their device)."""
 
-import importlib.util
 import json
 import os
 import shutil
@@ -15,18 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from isolation import without_modules
 from PIL import Image
+from script_loader import load_script
 
 from spk2img.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_script(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_torch_inference_speed_times_each_precision_and_batch_and_its_error(tmp_path):
@@ -55,22 +49,6 @@ def test_torch_inference_speed_times_each_precision_and_batch_and_its_error(tmp_
 NOT_ON_THE_GPU_IMAGE = ("av", "fastapi", "uvicorn", "pydantic", "pydantic_settings", "starlette")
 """Modules of the project's extras that the lent GPU machines' image does not have (its package
 list, as sessions there saw it): the session's steps must run without them."""
-
-
-def image_without(site: Path, modules: tuple[str, ...]) -> Path:
-    """A folder for ``PYTHONPATH`` whose ``sitecustomize`` makes ``modules`` unimportable in
-    every Python process started with it, as on a machine without them."""
-    site.mkdir(parents=True, exist_ok=True)
-    (site / "sitecustomize.py").write_text(
-        "import sys\n\n\n"
-        "class Absent:\n"
-        f"    names = {set(modules)!r}\n\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        "        if name.partition('.')[0] in self.names:\n"
-        "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n\n\n"
-        "sys.meta_path.insert(0, Absent())\n"
-    )
-    return site
 
 
 def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tmp_path):
@@ -107,7 +85,7 @@ def test_a_gpu_session_trains_its_runs_then_resumes_them_and_brings_them_back(tm
         "SPK2IMG_SESSION_MEASURE": "0",
         "PARTS_STORE": str(tmp_path / "parts"),
         "PATH": f"{Path(sys.executable).parent}:{os.environ['PATH']}",  # its python3
-        "PYTHONPATH": str(image_without(tmp_path / "site", NOT_ON_THE_GPU_IMAGE)),
+        "PYTHONPATH": without_modules(tmp_path / "site", NOT_ON_THE_GPU_IMAGE)["PYTHONPATH"],
     }
 
     def session(*args: str) -> str:

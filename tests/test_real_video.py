@@ -4,7 +4,6 @@ the renderer defines, and the clips kept out of training."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import pytest
 from hypothesis import given
 from hypothesis.extra.numpy import arrays
 from PIL import Image
+from script_loader import load_script
 
 from spk2img.evaluation.natural_validation import NEVER_TRAINED
 from spk2img.evaluation.real_video import (
@@ -169,9 +169,7 @@ def test_the_script_scores_a_graph_by_path_beside_the_shipped_model_it_is(data_d
     """``--models tiny,candidate=GRAPH.onnx`` (the shipped ``tiny``'s own graph): the same
     scores under both names; ``--add`` keeps them and the written notes, lists each date once
     and refuses a JSON scored on other windows."""
-    spec = importlib.util.spec_from_file_location("rvv", ROOT / "scripts/real_video_validation.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("real_video_validation")
     graph = ROOT / "spk2img/assets/models/spk2img-tiny.onnx"
     out = ["--json", str(tmp_path / "rv.json"), "--md", str(tmp_path / "rv.md")]
     data = ["--data", str(data_dir), "--threads", "1", *out]
