@@ -76,3 +76,6 @@ _._device_runs_here  # spk2img.service.settings
 _.toolkit_data_root  # spk2img/evaluation/spike_reds.py
 _.find_streams
 _.load_window
+# spk2img/evaluation/scoring.py, used by scripts/real_video_validation.py and
+# scripts/spike_reds_benchmark.py
+_.network_methods

@@ -28,8 +28,7 @@ import numpy as np
 
 from spk2img.cli.progress import add_progress_flags, progress_bar
 from spk2img.evaluation.real_video import SPEEDS, real_video_scores, real_video_set
-from spk2img.evaluation.scoring import network_scorer, tfi_window, tfp_best_window, tfp_window
-from spk2img.runtime.loader import load_network
+from spk2img.evaluation.scoring import network_methods, tfi_window, tfp_best_window, tfp_window
 
 Method = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """``(spikes, truth)`` of a window -> ``(H, W)`` image (spk2img.evaluation.scoring's shape)."""
@@ -41,13 +40,6 @@ def classical_methods() -> dict[str, Method]:
         "TFP, best window (oracle)": tfp_best_window,
         "TFI": tfi_window,
     }
-
-
-def network_method(model: str, threads: int, self_ensemble: bool = False) -> Method:
-    """``model``: a shipped model's name or an exported graph's path; ``self_ensemble``: run
-    it as :mod:`spk2img.runtime.self_ensemble` does (four views averaged)."""
-    network = load_network(model, threads=threads, block_reuse=False, self_ensemble=self_ensemble)
-    return network_scorer(network.predict)
 
 
 def markdown(results: dict) -> str:
@@ -117,10 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     if earlier and (earlier["windows"], earlier["seeds"]) != (len(windows), args.seeds):
         raise SystemExit(f"--add: {args.json} was scored on other windows or seeds")
     methods = {} if earlier else classical_methods()
-    for spec in filter(None, args.models.split(",")):
-        name, _, graph = spec.partition("=")
-        label = f"{name}, self-ensemble" if args.self_ensemble else name
-        methods[label] = network_method(graph or name, args.threads, args.self_ensemble)
+    methods |= network_methods(args.models, args.threads, args.self_ensemble)
     results = dict(earlier["methods"]) if earlier else {}
     for name, method in methods.items():
         start = time.perf_counter()

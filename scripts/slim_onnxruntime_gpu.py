@@ -8,20 +8,19 @@ in three commands").
 kernels of one compilation unit, one cubin per architecture) keeps only its entries for
 ``sm_ARCH``; the bytes freed are zeroed in place, so no address in the library moves, and
 xz takes them to nothing. The 1.31.1 wheel (255.6 MB; that library 284 MB, 231 MB compressed,
-with cubins for sm_75, 80, 86, 89, 90 and 120) becomes a ~62 MB archive that three commands
+with cubins for sm_75, 80, 86, 89, 90 and 120) becomes a 66.7 MiB archive that three commands
 carry, where the wheel needed ten. The CUDA driver loads the cubin of the device's own
 architecture from a fat binary, so the result runs on that architecture only (sm_90: H100,
 H200); a fat binary without an entry for it is left whole. A ``.json`` beside the archive
 records the wheel's SHA-256 and the bytes per architecture before and after.
 
 The archive unpacks into a folder for ``PYTHONPATH`` (``scripts/receive_parts.sh``); it is
-not a wheel and not for pip. Standard library only.
+not a wheel and not for pip.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import io
 import json
 import lzma
@@ -31,6 +30,8 @@ import tarfile
 import zipfile
 from collections import Counter
 from pathlib import Path
+
+from spk2img.parts import sha256_of
 
 CUDA_LIBRARY = "libonnxruntime_providers_cuda.so"
 SECTION = ".nv_fatbin"
@@ -116,8 +117,7 @@ def keep_architecture(data: bytearray, start: int, size: int, arch: int) -> dict
 def slim(wheel: Path, out: Path, arch: int) -> dict:
     """Write the package of ``wheel`` to the ``.tar.xz`` ``out`` with the CUDA provider kept
     for ``sm_ARCH`` only (module doc); the summary it writes beside (``OUT.json``)."""
-    digest = hashlib.sha256(wheel.read_bytes()).hexdigest()
-    summary: dict = {"wheel": wheel.name, "wheel_sha256": digest, "arch": f"sm_{arch}"}
+    summary: dict = {"wheel": wheel.name, "wheel_sha256": sha256_of(wheel), "arch": f"sm_{arch}"}
     with zipfile.ZipFile(wheel) as source, tarfile.open(out, "w:xz", preset=6) as target:
         for member in source.infolist():
             if member.is_dir() or member.filename.endswith(".dist-info/RECORD"):

@@ -23,8 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from spk2img.evaluation.metrics import psnr, ssim
-from spk2img.evaluation.scoring import network_scorer, tfi_window, tfp_window
+from spk2img.evaluation.scoring import (
+    image_scores,
+    mean_scores,
+    network_methods,
+    tfi_window,
+    tfp_window,
+)
 from spk2img.evaluation.spike_reds import (
     TOOLKIT,
     BenchmarkDataError,
@@ -32,40 +37,18 @@ from spk2img.evaluation.spike_reds import (
     load_window,
     toolkit_data_root,
 )
-from spk2img.runtime.loader import load_network
 
 CLASSICAL = {"TFP-41": tfp_window, "TFI": tfi_window}
 NOTES = "## Reading it"
 """The heading from which ``--md``'s hand-written notes are kept."""
 
 
-def methods_to_score(models: list[str], self_ensemble: bool, threads: int) -> dict:
-    """``{row name: method}``: the classical methods and each model (``NAME`` or
-    ``NAME=GRAPH``), or its self-ensemble."""
-    methods = dict(CLASSICAL)
-    for model in models:
-        name, _, graph = model.partition("=")
-        network = load_network(
-            graph or name, threads=threads, block_reuse=False, self_ensemble=self_ensemble
-        )
-        methods[f"{name}, self-ensemble" if self_ensemble else name] = network_scorer(
-            network.predict
-        )
-    return methods
-
-
 def score(method, windows: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict:
     """PSNR (dB) and SSIM of ``method`` on each window, and their means."""
-    per_stream = {}
-    for name, (spikes, truth) in windows.items():
-        image = np.clip(method(spikes, truth), 0.0, 1.0)
-        per_stream[name] = [round(psnr(image, truth), 3), round(ssim(image, truth), 4)]
-    values = np.array(list(per_stream.values()))
-    return {
-        "psnr": float(values[:, 0].mean()),
-        "ssim": float(values[:, 1].mean()),
-        "per_stream": per_stream,
-    }
+    images = [np.clip(method(spikes, truth), 0.0, 1.0) for spikes, truth in windows.values()]
+    scores = image_scores(images, [truth for _, truth in windows.values()])
+    per_stream = {n: [round(p, 3), round(s, 4)] for n, (p, s) in zip(windows, scores, strict=True)}
+    return {**mean_scores(list(per_stream.values())), "per_stream": per_stream}
 
 
 def markdown(results: dict, notes: str) -> str:
@@ -108,8 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     before = json.loads(args.json.read_text()) if args.add and args.json.is_file() else {}
     kept = before.get("methods", {})
-    models = [m for m in args.models.split(",") if m]
-    methods = methods_to_score(models, args.self_ensemble, args.threads)
+    methods = CLASSICAL | network_methods(args.models, args.threads, args.self_ensemble)
     if args.add:
         methods = {name: m for name, m in methods.items() if name not in CLASSICAL or not kept}
     scored = dict(kept)

@@ -133,18 +133,19 @@ def row_graphs(
     not be made (logged)."""
     from spk2img.export.quantize import reduce_block_graphs, reduce_precision
 
+    def fp16_of(name: str) -> Path | None:
+        fp32 = graph(name, "fp32")
+        if fp32 is None:  # already logged
+            return None
+        fp16 = work / f"gpu-{name}-fp16.onnx"
+        reduce_precision(fp32, fp16, "fp16")
+        reduce_block_graphs(fp32, fp16, "fp16")
+        return fp16
+
     @functools.cache
     def graph(name: str, precision: str) -> Path | None:
-        fp32 = None if precision == "fp32" else graph(name, "fp32")
         try:
-            if precision == "fp32":
-                return graphs[name]()
-            if fp32 is None:
-                return None
-            fp16 = work / f"gpu-{name}-fp16.onnx"
-            reduce_precision(fp32, fp16, "fp16")
-            reduce_block_graphs(fp32, fp16, "fp16")
-            return fp16
+            return graphs[name]() if precision == "fp32" else fp16_of(name)
         except Exception as exc:  # noqa: BLE001 - its rows report the failure
             log(f"the {precision} graph of {name} for the GPU rows failed: {exc}")
             return None

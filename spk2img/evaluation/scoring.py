@@ -139,3 +139,21 @@ def network_scorer(predict: Callable[[np.ndarray], np.ndarray], geometry: Geomet
     if geometry is None:
         return lambda spikes, truth: predict(spikes[None].astype(np.float32))[0]
     return lambda spikes, truth: predict(geometry.crop(spikes)[None].astype(np.float32))[0]
+
+
+def network_methods(models: str, threads: int, self_ensemble: bool = False) -> dict:
+    """``{row name: method}`` (:func:`score`'s method shape) of the comma-separated ``models``,
+    each a shipped model's name or ``NAME=GRAPH.onnx`` (an exported graph scored under NAME);
+    ``self_ensemble``: each as its self-ensemble (four mirrored views averaged,
+    :mod:`spk2img.runtime.self_ensemble`), named ``NAME, self-ensemble``."""
+    from spk2img.runtime.loader import load_network
+
+    methods = {}
+    for spec in filter(None, models.split(",")):
+        name, _, graph = spec.partition("=")
+        network = load_network(
+            graph or name, threads=threads, block_reuse=False, self_ensemble=self_ensemble
+        )
+        label = f"{name}, self-ensemble" if self_ensemble else name
+        methods[label] = network_scorer(network.predict)
+    return methods
