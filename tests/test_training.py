@@ -376,6 +376,9 @@ def test_a_run_validates_on_real_video_windows_from_a_file(tmp_path):
     (data,) = [r for r in records if r["kind"] == "data"]
     (val,) = [r for r in records if r["kind"] == "val"]
     assert data["real_video_windows"] == 1 and 0 < val["real_video"]["psnr"] < 60
+    # beside it, how far the alignment follows a pan: one finite slope per deformable conv
+    slopes = val["alignment_slopes"]
+    assert "align.cas_dcn_pack" in slopes and all(np.isfinite(v) for v in slopes.values())
     bad = TINY_RUN | {"run_dir": str(tmp_path / "bad"), "real_video_windows": str(tmp_path)}
     with pytest.raises(InputError, match="--real-video-windows .*not a file of real-video windows"):
         train(TrainConfig(steps=1, **bad))

@@ -21,6 +21,7 @@ from torch.nn.parallel import DistributedDataParallel
 from tqdm import tqdm
 
 from spk2img.errors import InputError
+from spk2img.evaluation.alignment_probe import alignment_slopes
 from spk2img.evaluation.natural_validation import NEVER_TRAINED, natural_validation_set
 from spk2img.evaluation.real_video import load_windows, real_video_scores, training_windows
 from spk2img.evaluation.scoring import baseline_scores, network_scorer, score, validation_set
@@ -309,6 +310,7 @@ def train(cfg: TrainConfig) -> dict:
                     val["natural"] = validate(scored, val_sets["natural"])
                 if val_sets["real_video"]:
                     val["real_video"] = validate_real_video(scored, val_sets["real_video"])
+                    val["alignment_slopes"] = probe_alignment(scored, val_sets["real_video"])
                     if average:  # the weights as trained, beside their average
                         val["real_video_trained"] = validate_real_video(
                             model, val_sets["real_video"]
@@ -428,6 +430,14 @@ def validate_real_video(model: Spk2ImgNet, windows: list) -> dict:
     with torch.inference_mode():
         net = _scorer(model)
         return real_video_scores(windows, [net(w.spikes, w.truth) for w in windows])
+
+
+def probe_alignment(model: Spk2ImgNet, windows: list) -> dict[str, float]:
+    """How far ``model``'s deformable convs follow a pan
+    (:func:`~spk2img.evaluation.alignment_probe.alignment_slopes`: 1 follows, 0 ignores), on
+    the first real-video window's truth (its borders mirrored)."""
+    truth = windows[0].truth
+    return alignment_slopes(model, truth, *truth.shape)
 
 
 def _scorer(model: Spk2ImgNet):
