@@ -52,7 +52,8 @@ def read_report(files_at: Path) -> dict[str, bytes]:
 
 
 def run_summary(metrics: bytes) -> dict:
-    """Steps, median steps and samples a second, and the last validation of a run's log."""
+    """Steps, median steps and samples a second, and the last validation of a run's log (with
+    its alignment probe, where it has one)."""
     records = [json.loads(line) for line in io.BytesIO(metrics).read().decode().splitlines()]
     train = [r for r in records if r["kind"] == "train"]
     start = next((r for r in records if r["kind"] == "run"), {})
@@ -66,6 +67,7 @@ def run_summary(metrics: bytes) -> dict:
         "samples_per_s": steps_per_s * batch if steps_per_s and batch else None,
         "val_psnr": vals[-1].get("psnr") if vals else None,
         "val_step": vals[-1]["step"] if vals else None,
+        "alignment_slopes": vals[-1].get("alignment_slopes") if vals else None,
     }
 
 
@@ -143,6 +145,9 @@ def take_results(files_at: Path, state_dir: Path, runs: Path, docs: Path) -> lis
             if summary["val_psnr"] is not None
             else "no validation yet"
         )
+        if summary["alignment_slopes"]:  # docs/motion_study.md: 1 follows motion, 0 ignores it
+            slopes = ", ".join(f"{k} {v:.3f}" for k, v in summary["alignment_slopes"].items())
+            val += f" (alignment slopes: {slopes})"
         kept = "last.pt kept (fp16 weights)" if last.is_file() else "no last.pt"
         said.append(f"{name}: step {summary['step']}, {rate}, {val}; {kept}")
     if "torch_inference.json" in report:

@@ -288,3 +288,19 @@ def test_gpu_results_files_the_onnx_steps_rows_into_the_bench(tmp_path):
     )
     assert after[after.index("![PSNR") :] == before[before.index("![PSNR") :]
     assert (docs / "gpu_verify_fp16_cuda.txt").read_text() == "every case passed\n"
+
+
+def test_a_runs_summary_carries_its_last_alignment_probe():
+    records = [
+        {"kind": "run", "train_config": {"batch_size": 64}},
+        {"kind": "train", "step": 1, "steps_per_s": 2.0},
+        {"kind": "train", "step": 2, "steps_per_s": 4.0},
+        {"kind": "val", "step": 2, "psnr": 33.0, "alignment_slopes": {"align.dcn_pack.l1": 0.4}},
+    ]
+    metrics = "\n".join(json.dumps(r) for r in records).encode()
+    summary = load_script("gpu_results").run_summary(metrics)
+    assert summary["samples_per_s"] == 256 and summary["val_psnr"] == 33.0
+    assert summary["alignment_slopes"] == {"align.dcn_pack.l1": 0.4}
+    records[-1].pop("alignment_slopes")
+    metrics = "\n".join(json.dumps(r) for r in records).encode()
+    assert load_script("gpu_results").run_summary(metrics)["alignment_slopes"] is None
