@@ -21,8 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.alignment_probe import PROBE_SPEEDS, alignment_slopes, pan_scene
-from spk2img.evaluation.real_video import film, find_real_video_clips, real_video_scenes
+from spk2img.evaluation.real_video import SPEEDS, film, find_real_video_clips, real_video_scenes
 from spk2img.evaluation.scoring import image_scores, network_methods
+from spk2img.markdown import table_head, table_row
 from spk2img.model.checkpoint import load_model
 from spk2img.runtime.onnx_backend import model_path
 from spk2img.sim.scenes import StillScene
@@ -68,6 +69,7 @@ def probe_source(clip) -> np.ndarray:
 
 def markdown(results: dict) -> str:
     models = results["models"]
+    benchmark = SPEEDS["benchmark"]
     lines = [
         "# Motion study: where the networks lose on real video",
         "",
@@ -75,18 +77,17 @@ def markdown(results: dict) -> str:
         "real-video validation's benchmark bin (seed 0, whole frames), filmed with the clip's own "
         "motion, still, and panned straight at the window's speed; noise-free sensor. PSNR in dB.",
         "",
-        "| clip | speed (px/frame) | "
-        + " | ".join(f"{m}: {v}" for m in models for v in VARIANTS)
-        + " |",
-        "|---|---|" + "---|" * (len(models) * len(VARIANTS)),
+        *table_head(["clip", "speed (px/frame)", *(f"{m}: {v}" for m in models for v in VARIANTS)]),
     ]
     for row in results["clips"]:
         cells = [f"{row['psnr'][m][v]:.2f}" for m in models for v in VARIANTS]
-        lines.append(f"| {row['clip']} | {row['speed']:.3f} | " + " | ".join(cells) + " |")
-    for label, picked in (("mean", results["clips"]), ("mean at 0.14 px/frame", moving(results))):
+        lines.append(table_row([row["clip"], f"{row['speed']:.3f}", *cells]))
+    moving = [r for r in results["clips"] if np.isclose(r["speed"], benchmark)]
+    for label, picked in (("mean", results["clips"]), (f"mean at {benchmark} px/frame", moving)):
         means = [np.mean([r["psnr"][m][v] for r in picked]) for m in models for v in VARIANTS]
-        cells = [f"**{mean:.2f}**" for mean in means]
-        lines.append(f"| {label} ({len(picked)} clips) | | " + " | ".join(cells) + " |")
+        lines.append(
+            table_row([f"{label} ({len(picked)} clips)", "", *(f"**{x:.2f}**" for x in means)])
+        )
     convs = list(next(iter(results["probe"].values())))
     lines += [
         "",
@@ -95,17 +96,13 @@ def markdown(results: dict) -> str:
         "deformable conv's mean sampling shift on the displacement an aligning conv samples at "
         "(1: it follows the motion; 0: it samples the same places whatever the motion).",
         "",
-        "| model | " + " | ".join(f"`{c}`" for c in convs) + " |",
-        "|---|" + "---|" * len(convs),
+        *table_head(["model", *(f"`{c}`" for c in convs)]),
     ]
     for model, slopes in results["probe"].items():
-        cells = [f"{slopes[c]:.3f}" if c in slopes else "—" for c in convs]
-        lines.append(f"| {model} | " + " | ".join(cells) + " |")
+        lines.append(
+            table_row([model, *(f"{slopes[c]:.3f}" if c in slopes else "—" for c in convs)])
+        )
     return "\n".join(lines) + "\n"
-
-
-def moving(results: dict) -> list[dict]:
-    return [r for r in results["clips"] if r["speed"] >= 0.139]
 
 
 def main(argv: list[str] | None = None) -> None:
