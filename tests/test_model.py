@@ -31,7 +31,7 @@ from spk2img.model.complexity import count_macs, count_parameters, count_stream_
 from spk2img.model.config import MEMBERS, PAPER, Spk2ImgNetConfig, get_config
 from spk2img.model.deform_conv import ModulatedDeformConv2d, modulated_deform_conv2d
 from spk2img.model.detail import MOTION_DEADBAND, DetailRefinement
-from spk2img.model.motion import block_motion, lucas_kanade
+from spk2img.model.motion import block_motion, coarse_to_fine, lucas_kanade
 from spk2img.model.network import build_model, pad_to_multiple
 from spk2img.model.sali import LightInference, fold, refold, unfold
 from spk2img.model.warp import warp
@@ -179,6 +179,12 @@ def test_config_rejects_impossible_shapes():
         Spk2ImgNetConfig(detail_aligned=True)
     with pytest.raises(ValueError, match="flow_guided"):
         Spk2ImgNetConfig(detail_hidden=8, flow_guided=True)
+    with pytest.raises(ValueError, match="motion_levels"):
+        Spk2ImgNetConfig(pyramid_levels=2, motion_levels=3)
+    with pytest.raises(ValueError, match="motion_window must be odd"):
+        Spk2ImgNetConfig(motion_window=4)
+    with pytest.raises(ValueError, match="damping"):
+        Spk2ImgNetConfig(motion_damping=0.0)
 
 
 @settings(max_examples=25, deadline=None)
@@ -281,6 +287,56 @@ def test_lucas_kanade_finds_the_motion_of_a_textured_scene(dy, dx, seed):
     flow = lucas_kanade(key, moved, window=7, damping=1e-6, iterations=5)[..., 8:-8, 8:-8]
     assert abs(flow[:, 0].median() - dy) < 0.2 and abs(flow[:, 1].median() - dx) < 0.2
     assert lucas_kanade(key, key).abs().max() < 1e-5
+
+
+@settings(max_examples=15, deadline=None)
+@given(dx=st.floats(3.0, 5.0), seed=st.integers(0, 2**16))
+def test_coarse_to_fine_follows_motion_beyond_one_level(dx, seed):
+    """A shift of 3-5 px on a 24-48 px texture: one Gauss-Newton step at one level falls short
+    (the linearisation holds for a fraction of the period), one step at each of two levels
+    comes at least twice as close (the median, away from the border); identical images give
+    no flow at any number of levels."""
+    key = smooth_scene((1, 1, 48, 64), 0.0, 0.0, seed, period=24.0)
+    moved = smooth_scene((1, 1, 48, 64), 0.0, dx, seed, period=24.0)
+    settings_ = {"window": 7, "damping": 1e-6, "iterations": 1}
+    two = coarse_to_fine(key, moved, 2, **settings_)[..., 10:-10, 10:-10].median(-1).values
+    one = coarse_to_fine(key, moved, 1, **settings_)[..., 10:-10, 10:-10].median(-1).values
+    two_error, one_error = abs(two[:, 1].median() - dx), abs(one[:, 1].median() - dx)
+    assert two_error < 0.2 and two_error < one_error / 2 and abs(two[:, 0].median()) < 0.5
+    assert coarse_to_fine(key, key, 3, **settings_).abs().max() < 1e-5
+
+
+def test_damping_per_intensity_is_the_neighbourhoods_mean_light_times_it():
+    """Where ``(key + other) / 2`` is ``m`` everywhere, ``damping_per_intensity=b`` gives the
+    flow of a constant damping ``b * m``; it damps more than its floor alone; a black pair
+    (no gradient, no light) gives zero flow, not a division by zero."""
+    texture = smooth_scene((1, 1, 40, 48), 0.0, 0.0, 3) - 0.3
+    key, other = 0.2 + texture, 0.2 - texture  # mean 0.2 at every pixel
+    per_intensity = lucas_kanade(key, other, 5, 1e-6, 3, damping_per_intensity=1e-2)
+    constant = lucas_kanade(key, other, 5, 1e-6 + 0.2 * 1e-2, 3)
+    torch.testing.assert_close(per_intensity, constant, rtol=1e-4, atol=1e-5)
+    moved = smooth_scene((1, 1, 40, 48), 0.0, 1.0, 3)
+    key = smooth_scene((1, 1, 40, 48), 0.0, 0.0, 3)
+    floor_only = lucas_kanade(key, moved, 5, 1e-6, 3)[..., 8:-8, 8:-8]
+    damped = lucas_kanade(key, moved, 5, 1e-6, 3, damping_per_intensity=1e-2)[..., 8:-8, 8:-8]
+    assert damped[:, 1].median() < floor_only[:, 1].median() - 0.1
+    black = torch.zeros(1, 1, 16, 16)
+    assert torch.equal(
+        lucas_kanade(black, black, 5, 1e-6, 3, damping_per_intensity=1e-3),
+        torch.zeros(1, 2, 16, 16),
+    )
+
+
+def test_block_motion_is_float32_under_bf16_autocast():
+    """The blocks' motion is computed in float32 whether or not the training autocasts to
+    bf16: the same flow to float rounding."""
+    estimates = smooth_scene((2, 3, 4, 32, 32), 0.0, 0.0, 5) + 0.1 * torch.rand(2, 3, 4, 32, 32)
+    settings_ = {"levels": 2, "window": 9, "damping": 1e-6, "damping_per_intensity": 1e-3}
+    reference = block_motion(estimates, 1, 2, **settings_)
+    with torch.autocast("cpu", torch.bfloat16):
+        autocast = block_motion(estimates, 1, 2, **settings_)
+    assert autocast.dtype == torch.float32
+    torch.testing.assert_close(autocast, reference)
 
 
 @settings(max_examples=20, deadline=None)

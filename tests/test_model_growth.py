@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from spk2img.export.onnx_export import random_source
-from spk2img.model.config import MEMBERS
-from spk2img.model.growth import grow_weights, growth_problems
+from spk2img.model.config import MEMBERS, PAPER
+from spk2img.model.growth import MOTION_FIELDS, grow_weights, growth_problems
 from spk2img.model.network import build_model
 
 
@@ -124,6 +124,20 @@ def test_equal_shapes_are_not_a_growth_and_bad_weights_are_refused():
     old_block = {k: v for k, v in weights.items() if not k.startswith("features.body.1.")}
     with pytest.raises(ValueError, match="no stored weights for features.body.1.body.0"):
         grow_weights(build_model("medium"), old_block, small)
+
+
+def test_the_motions_settings_change_freely_and_keep_every_weight():
+    """``cpu`` with one-level Lucas-Kanade (the settings before ``motion_levels`` and the
+    others, which its checkpoints of then store) goes to today's: no weight to grow, each one
+    loaded as it was."""
+    cpu = MEMBERS["cpu"]
+    before = replace(cpu, **{name: getattr(PAPER, name) for name in MOTION_FIELDS})
+    assert before != cpu
+    assert growth_problems(before, cpu) == []
+    old = random_source(before, seed=1).model
+    new = _grown(old, cpu)
+    for name, weight in old.state_dict().items():
+        assert torch.equal(new.state_dict()[name], weight), name
 
 
 def test_cpu_grown_in_width_and_by_its_detail_refinement_at_once():

@@ -157,6 +157,21 @@ class Spk2ImgNetConfig:
     also guides the alignment: each pyramid level's deformable conv adds it to its offsets,
     which then learn what is left of the motion (flow-guided deformable alignment, as in
     BasicVSR++; not in the paper)."""
+    motion_levels: int = 1
+    """Pyramid levels of the blocks' Lucas-Kanade motion (coarse to fine, each half the size
+    of the one below; :func:`~spk2img.model.motion.block_motion`), for members with
+    ``detail_aligned``: ``2**(levels-1)`` times larger motion is followed."""
+    motion_window: int = 5
+    """Odd side, in pixels of the motion's resolution (the feature stride), of the
+    neighbourhood each Lucas-Kanade system sums over."""
+    motion_damping: float = 1e-3
+    """Constant damping of each Lucas-Kanade system (squared intensity of SALI's estimates per
+    pixel; ``spk2img.model.motion.MOTION_DAMPING``)."""
+    motion_damping_per_intensity: float = 0.0
+    """Damping per unit of the neighbourhood's mean intensity, which grows with the light as a
+    spike count's noise does."""
+    motion_iterations: int = 3
+    """Gauss-Newton steps of the Lucas-Kanade motion at each pyramid level."""
 
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
@@ -183,6 +198,20 @@ class Spk2ImgNetConfig:
             raise ValueError("detail_aligned needs a detail refinement (detail_hidden > 0)")
         if self.flow_guided and not self.detail_aligned:
             raise ValueError("flow_guided needs the aligned detail refinement (detail_aligned)")
+        if not 1 <= self.motion_levels <= self.pyramid_levels:
+            raise ValueError(
+                f"motion_levels must be 1 .. pyramid_levels={self.pyramid_levels}, "
+                f"got {self.motion_levels}"
+            )
+        if self.motion_window < 1 or self.motion_window % 2 != 1 or self.motion_iterations < 1:
+            raise ValueError(
+                "motion_window must be odd and motion_iterations positive, got "
+                f"{self.motion_window} and {self.motion_iterations}"
+            )
+        if min(self.motion_damping, self.motion_damping_per_intensity) < 0 or not (
+            self.motion_damping or self.motion_damping_per_intensity
+        ):
+            raise ValueError("the motion's damping must be >= 0 and not all zero")
         if self.sali_stride < 1 or self.feature_stride % self.sali_stride:
             raise ValueError(
                 f"sali_stride={self.sali_stride} must divide feature_stride={self.feature_stride}"
@@ -252,6 +281,11 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         detail_depth=2,
         detail_aligned=True,
         flow_guided=True,
+        motion_levels=2,
+        motion_window=15,
+        motion_damping=1e-6,
+        motion_damping_per_intensity=1e-3,
+        motion_iterations=4,
     ),
     "tiny": replace(
         PAPER,

@@ -45,6 +45,16 @@ GROWN_FIELDS = ("channels", "deformable_groups", "reliability_hidden", "fusion_h
 DETAIL_FIELDS = ("detail_hidden", "detail_depth", "detail_aligned", "flow_guided")
 """The detail refinement's shape and the motion's use, which may grow too."""
 
+MOTION_FIELDS = (
+    "motion_levels",
+    "motion_window",
+    "motion_damping",
+    "motion_damping_per_intensity",
+    "motion_iterations",
+)
+"""The Lucas-Kanade motion's settings: no weights, so they may change freely (every weight is
+loaded as stored; the motion it reads is another)."""
+
 # the channel layout of each grown weight, (output, input), by parameter name; a layout names
 # the widths whose tensors are concatenated along that axis: "c" the feature channels, "c*" as
 # many feature tensors as the axis holds, "rh" / "fh" the reliability masks' and the fusion's
@@ -68,13 +78,14 @@ LAYOUTS: tuple[tuple[str, tuple[str, ...], tuple[str, ...]], ...] = (
 
 def growth_problems(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> list[str]:
     """Why ``stored`` cannot grow into ``config`` (empty where it can, or where they are equal):
-    only :data:`GROWN_FIELDS`, ``residual_blocks`` and :data:`DETAIL_FIELDS` may differ, none
-    may shrink, and a deformable group keeps its channel count."""
+    only :data:`GROWN_FIELDS`, ``residual_blocks``, :data:`DETAIL_FIELDS` and
+    :data:`MOTION_FIELDS` may differ, none may shrink, and a deformable group keeps its
+    channel count."""
     grown = (*GROWN_FIELDS, "residual_blocks")
     changed = [
         f"{field.name} {getattr(stored, field.name)} -> {getattr(config, field.name)}"
         for field in dataclasses.fields(config)
-        if field.name not in (*grown, *DETAIL_FIELDS)
+        if field.name not in (*grown, *DETAIL_FIELDS, *MOTION_FIELDS)
         and getattr(config, field.name) != getattr(stored, field.name)
     ]
     problems = []

@@ -143,7 +143,16 @@ class Spk2ImgNet(nn.Module):
         cfg = self.config
         if not cfg.detail_aligned:
             return None
-        return block_motion(weighted, cfg.sali_stride, cfg.feature_stride)
+        return block_motion(
+            weighted,
+            cfg.sali_stride,
+            cfg.feature_stride,
+            levels=cfg.motion_levels,
+            window=cfg.motion_window,
+            damping=cfg.motion_damping,
+            damping_per_intensity=cfg.motion_damping_per_intensity,
+            iterations=cfg.motion_iterations,
+        )
 
     def fuse(
         self,
