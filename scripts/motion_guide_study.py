@@ -29,7 +29,7 @@ from spk2img.evaluation.alignment_probe import neighbour_offsets, pan_scene
 from spk2img.evaluation.real_video import find_real_video_clips
 from spk2img.markdown import table_head, table_row
 from spk2img.model.checkpoint import load_model
-from spk2img.model.config import MEMBERS, PAPER
+from spk2img.model.config import MEMBERS
 from spk2img.model.growth import MOTION_FIELDS
 from spk2img.runtime.onnx_backend import model_path
 from spk2img.sim.simulator import FILM_FRAMES, SensorConfig, simulate
@@ -43,20 +43,23 @@ CASES = (
     ("real-like, 15 % light", 0.15, 0.14),
 )
 """(sensor, light gain, speed in px a spike frame) of each filmed pan."""
+TWO_LEVELS = {
+    "motion_levels": 2,
+    "motion_window": 15,
+    "motion_damping": 1e-6,
+    "motion_damping_per_intensity": 1e-3,
+    "motion_iterations": 4,
+}
+"""The settings the fine-tune ``cpu-lk2-v1`` trained with (training_state/README.md)."""
 SETTINGS = {
-    "before (one level, 5x5, damping 1e-3)": {name: getattr(PAPER, name) for name in MOTION_FIELDS},
-    "cpu today": {name: getattr(MEMBERS["cpu"], name) for name in MOTION_FIELDS},
-    "one level, 15x15, damping 1e-6 + 1e-3 x light": {
-        "motion_levels": 1,
-        "motion_window": 15,
-        "motion_damping": 1e-6,
-        "motion_damping_per_intensity": 1e-3,
-        "motion_iterations": 4,
+    "cpu (one level, 5x5, damping 1e-3, 3 iterations)": {
+        name: getattr(MEMBERS["cpu"], name) for name in MOTION_FIELDS
     },
-    "two levels, 15x15, damping 1e-6 + 3e-3 x light": {
-        **{name: getattr(MEMBERS["cpu"], name) for name in MOTION_FIELDS},
-        "motion_damping_per_intensity": 3e-3,
-    },
+    "two levels, 15x15, damping 1e-6 + 1e-3 x light, 4 iterations": TWO_LEVELS,
+    "one level, 15x15, damping 1e-6 + 1e-3 x light, 4 iterations": TWO_LEVELS
+    | {"motion_levels": 1},
+    "two levels, 15x15, damping 1e-6 + 3e-3 x light, 4 iterations": TWO_LEVELS
+    | {"motion_damping_per_intensity": 3e-3},
 }
 """Label -> the config's motion fields (:data:`spk2img.model.growth.MOTION_FIELDS`)."""
 

@@ -127,15 +127,22 @@ def test_equal_shapes_are_not_a_growth_and_bad_weights_are_refused():
 
 
 def test_the_motions_settings_change_freely_and_keep_every_weight():
-    """``cpu`` with one-level Lucas-Kanade (the settings before ``motion_levels`` and the
-    others, which its checkpoints of then store) goes to today's: no weight to grow, each one
-    loaded as it was."""
+    """``cpu`` (one-level Lucas-Kanade, the settings its checkpoints stored before the motion's
+    fields, which they are read with) goes to two levels and other dampings: no weight to grow,
+    each one loaded as it was."""
     cpu = MEMBERS["cpu"]
-    before = replace(cpu, **{name: getattr(PAPER, name) for name in MOTION_FIELDS})
-    assert before != cpu
-    assert growth_problems(before, cpu) == []
-    old = random_source(before, seed=1).model
-    new = _grown(old, cpu)
+    assert all(getattr(cpu, name) == getattr(PAPER, name) for name in MOTION_FIELDS)
+    two_levels = replace(
+        cpu,
+        motion_levels=2,
+        motion_window=15,
+        motion_damping=1e-6,
+        motion_damping_per_intensity=1e-3,
+        motion_iterations=4,
+    )
+    assert growth_problems(cpu, two_levels) == []
+    old = random_source(cpu, seed=1).model
+    new = _grown(old, two_levels)
     for name, weight in old.state_dict().items():
         assert torch.equal(new.state_dict()[name], weight), name
 

@@ -281,11 +281,6 @@ MEMBERS: dict[str, Spk2ImgNetConfig] = {
         detail_depth=2,
         detail_aligned=True,
         flow_guided=True,
-        motion_levels=2,
-        motion_window=15,
-        motion_damping=1e-6,
-        motion_damping_per_intensity=1e-3,
-        motion_iterations=4,
     ),
     "tiny": replace(
         PAPER,
