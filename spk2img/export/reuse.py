@@ -16,11 +16,12 @@ holds which weight.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import onnx
 
-from spk2img.model.checkpoint import read_network
+from spk2img.model.checkpoint import config_from_dict, read_network
 from spk2img.runtime.block_codec import block_graph_paths
 from spk2img.runtime.onnx_backend import shipped_models
 
@@ -53,9 +54,17 @@ def find_template(source: ExportSource, config: ExportConfig, block_graphs: bool
         if not all(p.is_file() for p in beside):
             continue
         props = graph_props(onnx.load(path, load_external_data=False))
-        if all(props.get(key) == value for key, value in wanted.items()):
+        if all(_same(key, props.get(key), value) for key, value in wanted.items()):
             return path
     return None
+
+
+def _same(key: str, stored: str | None, wanted: str) -> bool:
+    """Whether a template's metadata value fits; configs are compared as configs, so that a
+    field added since (at its default) does not make a same network another."""
+    if key == "config" and stored is not None:
+        return config_from_dict(json.loads(stored)) == config_from_dict(json.loads(wanted))
+    return stored == wanted
 
 
 def reuse_graphs(
