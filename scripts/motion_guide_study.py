@@ -60,6 +60,10 @@ SETTINGS = {
     | {"motion_levels": 1},
     "two levels, 15x15, damping 1e-6 + 3e-3 x light, 4 iterations": TWO_LEVELS
     | {"motion_damping_per_intensity": 3e-3},
+    "two levels, 15x15, damping 1e-5 + 1e-3 x light, 4 iterations": TWO_LEVELS
+    | {"motion_damping": 1e-5},
+    "two levels, 15x15, damping 1e-4 + 1e-3 x light, 4 iterations": TWO_LEVELS
+    | {"motion_damping": 1e-4},
 }
 """Label -> the config's motion fields (:data:`spk2img.model.growth.MOTION_FIELDS`)."""
 

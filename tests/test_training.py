@@ -24,7 +24,7 @@ from spk2img.model.checkpoint import (
     release_checkpoint,
     save_checkpoint,
 )
-from spk2img.model.config import PUBLISHED_GEOMETRY, get_config
+from spk2img.model.config import MOTION_FIELDS, PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
 from spk2img.sim.simulator import FILM_FRAMES, SensorConfig
@@ -113,6 +113,7 @@ def test_an_unknown_loss_is_refused(tmp_path, capsys):
         ("--lr", "nan", "--lr nan: must be a positive number"),
         ("--data-mix", "photos=nan", "bad data mix 'photos=nan'"),
         ("--data-mix", "photos=inf", "bad data mix 'photos=inf'"),
+        ("--motion", "levels=2", "--motion: tiny does not read the blocks' motion"),
     ],
 )
 def test_a_flag_out_of_its_range_is_one_line_before_any_work(tmp_path, capsys, flag, value, says):
@@ -299,6 +300,49 @@ def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):
     save_checkpoint(tmp_path / "last.pt", **state)
     with pytest.raises(InputError, match="another shape"):
         train(TrainConfig(run_dir=str(tmp_path), steps=2, **TINY_RUN))
+
+
+@pytest.mark.parametrize(
+    "settings, says",
+    [
+        ("speed=2", "use NAME=VALUE with NAME one of levels, window"),
+        ("levels", "use NAME=VALUE"),
+        ("levels=two", "'two' is not an integer"),
+        ("damping=lots", "'lots' is not a number"),
+        ("window=4", "motion_window must be odd"),
+        ("levels=4", "motion_levels must be 1 .. pyramid_levels=3"),
+    ],
+)
+def test_bad_motion_settings_are_one_line_naming_them(tmp_path, capsys, settings, says):
+    run = tmp_path / "run"
+    argv = ["train", "--member", "cpu", "--run-dir", str(run), "--motion", settings]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"--motion {settings}: " in err and says in err and "Traceback" not in err
+    assert not run.exists()
+
+
+def test_motion_settings_train_the_member_with_that_motion_and_resume_only_with_it(tmp_path):
+    """``--motion`` changes the blocks' Lucas-Kanade motion and nothing else: the run starts
+    from the same weights (``--init``: the motion has none), its checkpoints store the settings
+    (an export reads them), and it resumes only with the settings it started with."""
+    settings = "levels=2,window=15,damping=1e-4,damping_per_intensity=1e-3,iterations=4"
+    cpu = TINY_RUN | {"member": "cpu", "val_every": 100}
+    source = tmp_path / "source"
+    train(TrainConfig(run_dir=str(source), steps=1, **cpu))
+    moved = tmp_path / "moved"
+    run = cpu | {"run_dir": str(moved), "init": str(source / "last.pt"), "motion": settings}
+    train(TrainConfig(steps=1, **run))
+    config = load_model(moved / "last.pt").config
+    assert (config.motion_levels, config.motion_window, config.motion_iterations) == (2, 15, 4)
+    assert (config.motion_damping, config.motion_damping_per_intensity) == (1e-4, 1e-3)
+    shipped_motion = {name: getattr(get_config("cpu"), name) for name in MOTION_FIELDS}
+    assert dataclasses.replace(config, **shipped_motion) == get_config("cpu")
+    assert load_checkpoint(moved / "last.pt")["init_from"]["step"] == 1
+    with pytest.raises(InputError, match="other motion settings.*--motion it was started with"):
+        train(TrainConfig(steps=2, **run | {"motion": ""}))
+    train(TrainConfig(steps=2, **run))
+    assert load_checkpoint(moved / "last.pt")["step"] == 2
 
 
 def test_init_starts_a_run_from_another_runs_weights(tmp_path):

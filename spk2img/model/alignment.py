@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .deform_conv import ModulatedDeformConv2d
+from .warp import upsample_flow
 
 
 def _conv(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
@@ -154,7 +155,7 @@ class PCDAlignment(nn.Module):
                 feat = self.feat_conv[level](torch.cat([feat, upsampled_feat], dim=1))
             if i > 1:
                 feat = self.lrelu(feat)
-                upsampled_offset = _upsample(offset) * 2  # x2 as EDVR: motion doubles per level
+                upsampled_offset = upsample_flow(offset)  # x2 as EDVR: motion doubles per level
                 upsampled_feat = _upsample(feat)
 
         # cascade at level 1

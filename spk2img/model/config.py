@@ -304,6 +304,42 @@ two 48-channel convs at half size on the blocks' estimates warped to the key; 14
 least of all), ``tiny`` (74 k, 12 channels, a 2-level pyramid)."""
 
 
+MOTION_FIELDS = (
+    "motion_levels",
+    "motion_window",
+    "motion_damping",
+    "motion_damping_per_intensity",
+    "motion_iterations",
+)
+"""The Lucas-Kanade motion's settings: no weights, so they may change freely (every weight is
+loaded as stored; the motion it reads is another)."""
+
+
+def with_motion(config: Spk2ImgNetConfig, settings: str) -> Spk2ImgNetConfig:
+    """``config`` with the motion settings ``settings`` over its own: comma-separated
+    ``NAME=VALUE`` pairs of :data:`MOTION_FIELDS` without their ``motion_`` prefix (``""``:
+    ``config`` as it is), e.g. ``levels=2,window=15,damping=1e-4,damping_per_intensity=1e-3``.
+
+    Raises ``ValueError`` naming what is wrong: an unknown name, a value that is not a number
+    of the field's type, or settings the config refuses (:class:`Spk2ImgNetConfig`)."""
+    changes: dict[str, int | float] = {}
+    for pair in filter(None, (p.strip() for p in settings.split(","))):
+        name, sep, value = pair.partition("=")
+        field_name = f"motion_{name.strip()}"
+        if not sep or field_name not in MOTION_FIELDS:
+            names = ", ".join(f.removeprefix("motion_") for f in MOTION_FIELDS)
+            raise ValueError(f"motion setting {pair!r}: use NAME=VALUE with NAME one of {names}")
+        kind = type(getattr(config, field_name))
+        try:
+            changes[field_name] = kind(value.strip())
+        except ValueError:
+            wanted = "an integer" if kind is int else "a number"
+            raise ValueError(
+                f"motion setting {pair!r}: {value.strip()!r} is not {wanted}"
+            ) from None
+    return replace(config, **changes)
+
+
 def get_config(name: str) -> Spk2ImgNetConfig:
     """The config of member ``name`` (one of :data:`MEMBERS`)."""
     try:

@@ -39,21 +39,14 @@ from .deform_conv import ModulatedDeformConv2d
 if TYPE_CHECKING:
     from .network import Spk2ImgNet
 
+from .config import MOTION_FIELDS  # no weights: they may change freely
+
 GROWN_FIELDS = ("channels", "deformable_groups", "reliability_hidden", "fusion_hidden")
 """Widths that may grow (none may shrink); ``residual_blocks`` may grow too."""
 
 DETAIL_FIELDS = ("detail_hidden", "detail_depth", "detail_aligned", "flow_guided")
 """The detail refinement's shape and the motion's use, which may grow too."""
 
-MOTION_FIELDS = (
-    "motion_levels",
-    "motion_window",
-    "motion_damping",
-    "motion_damping_per_intensity",
-    "motion_iterations",
-)
-"""The Lucas-Kanade motion's settings: no weights, so they may change freely (every weight is
-loaded as stored; the motion it reads is another)."""
 
 # the channel layout of each grown weight, (output, input), by parameter name; a layout names
 # the widths whose tensors are concatenated along that axis: "c" the feature channels, "c*" as

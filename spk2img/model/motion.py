@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 
 from .block_ops import per_neighbour, without_key
-from .warp import warp
+from .warp import upsample_flow, warp
 
 AUTOCAST_DEVICES = ("cpu", "cuda")
 """Devices with an autocast to turn off (not ``meta``, which counts the MACs)."""
@@ -111,7 +111,7 @@ def coarse_to_fine(
     flow = None
     for level_key, level_other in zip(keys[::-1], others[::-1], strict=True):
         if flow is not None:
-            flow = 2 * F.interpolate(flow, scale_factor=2, mode="bilinear", align_corners=False)
+            flow = upsample_flow(flow)
         flow = lucas_kanade(level_key, level_other, flow=flow, **settings)
     return flow
 

@@ -13,6 +13,14 @@ def sampling_grid(rows: torch.Tensor, cols: torch.Tensor, h: int, w: int) -> tor
     return torch.stack([(2 * cols + 1) / w - 1, (2 * rows + 1) / h - 1], dim=-1)
 
 
+def upsample_flow(flow: torch.Tensor, factor: int = 2) -> torch.Tensor:
+    """Displacements ``(b, 2k, h, w)`` in pixels of one resolution -> the same motion at
+    ``factor`` times it, ``(b, 2k, h * factor, w * factor)``: bilinearly upsampled, each
+    displacement times ``factor`` (a coarse pyramid level's flow or offsets, read at the finer
+    level)."""
+    return factor * F.interpolate(flow, scale_factor=factor, mode="bilinear", align_corners=False)
+
+
 def warp(x: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Sample ``x`` where ``flow`` points: ``out[:, :, y, x] = x[:, :, y + dy, x + dx]``,
     bilinearly, the border replicated outside the image.

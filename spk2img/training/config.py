@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from spk2img.model.config import MEMBERS
+from spk2img.model.config import MEMBERS, with_motion
 
 FINAL_TERMS = ("l1", "psnr")
 """The final image's term of the hierarchical loss (``--loss``)."""
@@ -139,6 +139,13 @@ class TrainConfig:
         "(0.999: about the last 1,000 steps); validations score it and best.pt holds it; "
         "0: off",
     )
+    motion: str = flag(
+        "",
+        "the blocks' Lucas-Kanade motion over the member's own, as NAME=VALUE pairs "
+        "(levels, window, damping, damping_per_intensity, iterations; e.g. levels=2,window=15,"
+        "damping=1e-4,damping_per_intensity=1e-3,iterations=4); weight-free, so --init takes "
+        "any checkpoint of the member; empty: the member's",
+    )
     init: str = flag(
         "",
         "a checkpoint of the same member whose weights start the run (fine-tuning); the "
@@ -174,3 +181,12 @@ class TrainConfig:
         check_final_term(self.loss)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"--ema-decay {self.ema_decay}: must be in [0, 1)")
+        if self.motion and not MEMBERS[self.member].detail_aligned:
+            raise ValueError(
+                f"--motion: {self.member} does not read the blocks' motion (only members with "
+                "detail_aligned do: cpu)"
+            )
+        try:
+            with_motion(MEMBERS[self.member], self.motion)
+        except ValueError as exc:
+            raise ValueError(f"--motion {self.motion}: {exc}") from None

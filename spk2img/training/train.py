@@ -33,7 +33,7 @@ from spk2img.model.checkpoint import (
     save_checkpoint,
     stored_config,
 )
-from spk2img.model.config import get_config
+from spk2img.model.config import MOTION_FIELDS, get_config, with_motion
 from spk2img.model.growth import grow_weights
 from spk2img.model.network import Spk2ImgNet
 from spk2img.provenance import git_commit
@@ -139,7 +139,7 @@ def train(cfg: TrainConfig) -> dict:
     torch.set_num_threads(cfg.threads)
     run_dir = Path(cfg.run_dir)
     torch.manual_seed(cfg.seed)
-    model = Spk2ImgNet(get_config(cfg.member))
+    model = Spk2ImgNet(with_motion(get_config(cfg.member), cfg.motion))
     if cfg.patch % model.config.size_multiple:
         raise InputError(
             f"--patch {cfg.patch}: must be a multiple of {model.config.size_multiple} for "
@@ -153,7 +153,16 @@ def train(cfg: TrainConfig) -> dict:
     last = run_dir / "last.pt"
     if last.is_file():
         state = load_checkpoint(last)
-        if stored_config(state, last) != model.config:
+        stored = stored_config(state, last)
+        if (
+            stored != model.config
+            and dataclasses.replace(stored, **motion_of(model.config)) == model.config
+        ):
+            raise InputError(
+                f"{last} was trained with other motion settings ({motion_of(stored)}): continue "
+                "it with the --motion it was started with"
+            )
+        if stored != model.config:
             raise InputError(
                 f"{last} holds another shape than --member {cfg.member} has now: continue it "
                 "with the code that started it, or train in a new --run-dir"
@@ -349,6 +358,11 @@ def train(cfg: TrainConfig) -> dict:
     if run.main and not stopping:
         log.write(kind="summary", **summary)
     return summary
+
+
+def motion_of(config) -> dict:
+    """``config``'s motion settings (:data:`~spk2img.model.config.MOTION_FIELDS`)."""
+    return {name: getattr(config, name) for name in MOTION_FIELDS}
 
 
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
