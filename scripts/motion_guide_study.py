@@ -29,8 +29,7 @@ from spk2img.evaluation.alignment_probe import neighbour_offsets, pan_scene
 from spk2img.evaluation.real_video import find_real_video_clips
 from spk2img.markdown import table_head, table_row
 from spk2img.model.checkpoint import load_model
-from spk2img.model.config import MEMBERS
-from spk2img.model.growth import MOTION_FIELDS
+from spk2img.model.config import MEMBERS, MOTION_FIELDS
 from spk2img.runtime.onnx_backend import model_path
 from spk2img.sim.simulator import FILM_FRAMES, SensorConfig, simulate
 
@@ -65,7 +64,7 @@ SETTINGS = {
     "two levels, 15x15, damping 1e-4 + 1e-3 x light, 4 iterations": TWO_LEVELS
     | {"motion_damping": 1e-4},
 }
-"""Label -> the config's motion fields (:data:`spk2img.model.growth.MOTION_FIELDS`)."""
+"""Label -> the config's motion fields (:data:`spk2img.model.config.MOTION_FIELDS`)."""
 
 
 def block_estimates(model, spikes: np.ndarray) -> torch.Tensor:

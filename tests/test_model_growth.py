@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from spk2img.export.onnx_export import random_source
-from spk2img.model.config import MEMBERS, PAPER
-from spk2img.model.growth import MOTION_FIELDS, grow_weights, growth_problems
+from spk2img.model.config import MEMBERS, MOTION_FIELDS, PAPER
+from spk2img.model.growth import grow_weights, growth_problems
 from spk2img.model.network import build_model
 
 
