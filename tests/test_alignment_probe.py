@@ -16,7 +16,10 @@ from spk2img.evaluation.alignment_probe import (
     neighbour_offsets,
     pan_scene,
 )
+from spk2img.model import config as model_config
+from spk2img.model.checkpoint import load_model
 from spk2img.model.network import build_model
+from spk2img.runtime.onnx_backend import model_path
 
 SIZE = 128
 
@@ -85,3 +88,27 @@ def test_half_the_motion_reads_half():
     with_motion(model, lambda speed, size: ideal(speed, size) / 2)
     slopes = alignment_slopes(model, texture(), SIZE, SIZE)
     assert slopes["align.dcn_pack.l1"] == pytest.approx(0.5, abs=1e-4)
+
+
+GUIDED = "guided=1,levels=2,window=15,damping=1e-4,damping_per_intensity=1e-3,iterations=4"
+"""Motion settings (:func:`~spk2img.model.config.with_motion`) that guide a member's alignment."""
+
+
+def test_a_full_size_member_guided_by_its_blocks_motion_follows_a_pan():
+    """``flow_guided`` without a detail refinement: the shipped ``tiny``'s weights load as they
+    are (the motion has none), and its deformable convs then sample along a pan by the blocks'
+    Lucas-Kanade motion; found at 1/4 of the size (``motion_stride`` 4, then upsampled), where
+    a neighbour block is a quarter as many pixels away and each pixel holds 16 pixels' spikes,
+    it follows the pan much further than found at full size. Unguided, the shipped network
+    does not follow it at all."""
+    shipped = load_model(model_path("tiny").with_suffix(".pt"))
+    slopes = {}
+    guides = {"unguided": "", "full": GUIDED, "quarter": f"{GUIDED},stride=4"}
+    for label, motion in guides.items():
+        model = type(shipped)(model_config.with_motion(shipped.config, motion))
+        model.load_state_dict(shipped.state_dict())  # strict: the same weights
+        slopes[label] = alignment_slopes(model, texture(), SIZE, SIZE)
+    for level in ("align.dcn_pack.l1", "align.dcn_pack.l2"):
+        assert abs(slopes["unguided"][level]) < 0.01, slopes
+        assert slopes["quarter"][level] > 0.3, slopes
+        assert slopes["quarter"][level] > 2 * slopes["full"][level] > 0.05, slopes

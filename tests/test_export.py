@@ -338,6 +338,23 @@ def test_paper_width_exports_as_deform_conv_nodes_and_verifies(tmp_path, monkeyp
     )
 
 
+def test_a_member_guided_by_its_blocks_motion_exports_with_block_graphs_that_agree(tmp_path):
+    """A full-size member whose alignment its blocks' Lucas-Kanade motion guides, found at 1/4
+    size over two levels (so it pads to 8, past its pyramid's 4): the one-shot graph and the
+    block graphs, whose code now carries the SALI estimates the head finds the motion from,
+    agree with torch (streams with block reuse, at 17x23 and at 16x24, a multiple of 8)."""
+    config = dataclasses.replace(
+        THREE_BLOCKS, flow_guided=True, motion_stride=4, motion_levels=2, motion_window=7
+    )
+    assert config.size_multiple == 8
+    source = random_source(config, seed=2)
+    result = export_verified(source, tmp_path / "guided.onnx", EXAMPLE, reuse=False)
+    assert result.parity.passed and result.block_parity <= ATOL
+    names = [o.name for o in onnx.load(block_graph_paths(result.path)["encoder"]).graph.output]
+    assert names[-1] == "sali"
+    assert block_parity(result.path, source.model, 16, 24, frames=40) <= ATOL
+
+
 def test_onnx_backend_agrees_with_torch_predictor(three_block_export, three_block_checkpoint):
     windows = THREE_BLOCKS.geometry.crop(_windows(6, 3, 21, 30), axis=1)
     torch_out = TorchPredictor(three_block_checkpoint, threads=1)(windows)

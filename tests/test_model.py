@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 from unittest import mock
 
@@ -177,8 +178,7 @@ def test_config_rejects_impossible_shapes():
         Spk2ImgNetConfig(detail_hidden=8, detail_depth=0)
     with pytest.raises(ValueError, match="detail_aligned"):
         Spk2ImgNetConfig(detail_aligned=True)
-    with pytest.raises(ValueError, match="flow_guided"):
-        Spk2ImgNetConfig(detail_hidden=8, flow_guided=True)
+    Spk2ImgNetConfig(flow_guided=True)  # the motion guides the alignment, no refinement needed
     with pytest.raises(ValueError, match="motion_levels"):
         Spk2ImgNetConfig(pyramid_levels=2, motion_levels=3)
     with pytest.raises(ValueError, match="motion_window must be odd"):
@@ -714,3 +714,43 @@ def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
         average_checkpoints(paths[:1], [1.0], tmp_path / "x.pt")
     with pytest.raises(InputError, match="sum to 1"):
         average_checkpoints(paths, [0.5, 0.6], tmp_path / "x.pt")
+
+
+def test_the_motion_stride_is_the_feature_strides_multiple_and_pads_for_the_motions_pyramid():
+    """``motion_stride`` sets where the blocks' motion is found (0: the feature stride); the
+    network pads to a multiple of its motion pyramid's too, only where it reads the motion."""
+    small, cpu = MEMBERS["small"], MEMBERS["cpu"]
+    assert cpu.size_multiple == 16 and cpu.motion_scale == 4  # as shipped
+    assert replace(small, motion_stride=4, motion_levels=2).size_multiple == 4  # not read
+    guided = replace(small, flow_guided=True, motion_stride=4, motion_levels=2)
+    assert guided.size_multiple == 8 and guided.motion_scale == 4
+    with pytest.raises(ValueError, match="motion_stride must be 0 or a multiple of feature"):
+        replace(cpu, motion_stride=6)
+    with pytest.raises(ValueError, match="motion_stride must be 0 or a multiple"):
+        replace(small, motion_stride=-1)
+
+
+def test_a_guided_full_size_member_upsamples_its_quarter_size_motion_and_stays_finite():
+    """A full-size member guided by motion found at 1/4 size: on odd sizes and extreme inputs
+    its output is finite and in range, and the motion reaching its alignment is the
+    quarter-size one upsampled, each displacement four times as many pixels."""
+    config = replace(
+        MEMBERS["tiny"], flow_guided=True, motion_stride=4, motion_levels=2, motion_window=7
+    )
+    model = build_model(config).eval()
+    torch.manual_seed(0)
+    for spikes in (
+        torch.zeros(1, 41, 19, 23),
+        torch.ones(1, 41, 19, 23),
+        (torch.rand(2, 41, 17, 30) < 0.3).float(),
+    ):
+        with torch.no_grad():
+            image, _ = model(spikes)
+        assert image.shape == (spikes.shape[0], 1, *spikes.shape[-2:])
+        assert torch.isfinite(image).all() and 0 <= image.min() and image.max() <= 1
+    weighted = torch.rand(1, 5, 3, 32, 48)
+    quarter = block_motion(weighted, 1, 4, levels=2, window=7, damping=1e-3, iterations=3)
+    upsampled = model.block_motion(weighted)
+    assert quarter.shape == (4, 2, 8, 12) and upsampled.shape == (4, 2, 32, 48)
+    expected = 4 * F.interpolate(quarter, scale_factor=4, mode="bilinear", align_corners=False)
+    torch.testing.assert_close(upsampled, expected)

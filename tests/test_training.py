@@ -113,7 +113,7 @@ def test_an_unknown_loss_is_refused(tmp_path, capsys):
         ("--lr", "nan", "--lr nan: must be a positive number"),
         ("--data-mix", "photos=nan", "bad data mix 'photos=nan'"),
         ("--data-mix", "photos=inf", "bad data mix 'photos=inf'"),
-        ("--motion", "levels=2", "--motion: tiny does not read the blocks' motion"),
+        ("--motion", "levels=2", "--motion levels=2: tiny does not read the blocks' motion"),
     ],
 )
 def test_a_flag_out_of_its_range_is_one_line_before_any_work(tmp_path, capsys, flag, value, says):
@@ -305,7 +305,8 @@ def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):
 @pytest.mark.parametrize(
     "settings, says",
     [
-        ("speed=2", "use NAME=VALUE with NAME one of levels, window"),
+        ("speed=2", "use NAME=VALUE with NAME one of guided, levels, window"),
+        ("guided=yes", "'yes' is not 0 or 1"),
         ("levels", "use NAME=VALUE"),
         ("levels=two", "'two' is not an integer"),
         ("damping=lots", "'lots' is not a number"),

@@ -62,22 +62,22 @@ def export_block_graphs(
     (``<stem>.encoder.onnx``, ``<stem>.head.onnx``); returns ``{part: path}``."""
     model = source.model.eval()
     cfg = model.config
-    levels = cfg.pyramid_levels
     names = model_code_names(model)
     stacked = role_blocks(cfg.num_blocks)  # blocks each role stacks in the head's inputs
     roles = [code_role(name) for name in names]
     paths = block_graph_paths(out)
-    # (batch, channels, height, width) of each code, and how many times the coarsest level's
-    # size its own size is
+    # (batch, channels, height, width) of each code, and how many times the padded size over
+    # the size multiple (the coarsest level's size, or less where the motion's pyramid pads
+    # further) its own size is
     code_dims, scales = {}, {}
     for name, role in zip(names, roles, strict=True):
         if role == DETAIL_CODE:  # the SALI estimates, at the SALI stride
             estimates = len(cfg.sali_subwindows) * cfg.sali_stride**2
             code_dims[name] = ["batch", estimates, "h_sali", "w_sali"]
             scales[name] = cfg.size_multiple // cfg.sali_stride
-        else:  # level l is 2**(L-l) times the coarsest
+        else:  # level l is at 1 / (feature stride * 2**(l-1)) of the padded size
             code_dims[name] = ["batch", cfg.channels, f"h_{name[-2:]}", f"w_{name[-2:]}"]
-            scales[name] = 2 ** (levels - int(name[-1]))
+            scales[name] = cfg.size_multiple // (cfg.feature_stride * 2 ** (int(name[-1]) - 1))
 
     block = torch.zeros(
         config.example_batch, cfg.block_frames, *example_size(config, cfg.size_multiple)

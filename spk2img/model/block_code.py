@@ -11,15 +11,22 @@ CODE_ROLES = ("feat", "nbr", "key")
 as the key."""
 
 DETAIL_CODE = "sali"
-"""The code's last part in members with a detail refinement: the block's weighted SALI
+"""The code's last part in members whose head reads the blocks' SALI estimates (a detail
+refinement, or the blocks' motion guiding the alignment): the block's weighted SALI
 estimates, which the head reads from every block."""
 
 
-def code_names(levels: int, detail: bool = False) -> list[str]:
+def reads_sali(detail_hidden: int, flow_guided: bool) -> bool:
+    """Whether a member's head reads every block's weighted SALI estimates: with a detail
+    refinement (``detail_hidden`` > 0) or an alignment its blocks' motion guides."""
+    return detail_hidden > 0 or flow_guided
+
+
+def code_names(levels: int, sali: bool = False) -> list[str]:
     """Names of a block code's arrays: ``feat_l1 .. feat_lL``, ``nbr_l1 ..``, ``key_l1 ..``,
-    then ``sali`` where the member has a detail refinement (``detail``)."""
+    then ``sali`` where the head reads the SALI estimates (``sali``, :func:`reads_sali`)."""
     names = [f"{role}_l{i}" for role in CODE_ROLES for i in range(1, levels + 1)]
-    return names + [DETAIL_CODE] if detail else names
+    return names + [DETAIL_CODE] if sali else names
 
 
 def code_role(name: str) -> str:

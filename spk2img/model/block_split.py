@@ -13,8 +13,9 @@ the feature stride, each further level half the one before):
   as a neighbour and as the key. That conv is linear in ``[neighbour, key]``, so its output on a
   pair is the neighbour's term plus the key's, and each block's terms are computed once, for
   whichever pairs it takes part in;
-- ``sali`` ``(b, n * r * r, hp / r, wp / r)``, only in members with a detail refinement: its
-  weighted SALI estimates (``r`` the SALI stride).
+- ``sali`` ``(b, n * r * r, hp / r, wp / r)``, only in members with a detail refinement or a
+  motion-guided alignment (the blocks' motion is found from them): its weighted SALI estimates
+  (``r`` the SALI stride).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from .alignment import PCDAlignment
-from .block_code import code_names, code_role, role_blocks
+from .block_code import code_names, code_role, reads_sali, role_blocks
 from .block_ops import per_neighbour, without_key
 from .network import Spk2ImgNet, pad_to_multiple, to_intensity
 from .sali import fold
@@ -53,7 +54,8 @@ def key_terms(align: PCDAlignment, pyramid: list[torch.Tensor]) -> list[torch.Te
 
 def model_code_names(model: Spk2ImgNet) -> list[str]:
     """The names of ``model``'s block code, in the order the encoder returns it."""
-    return code_names(model.config.pyramid_levels, model.detail is not None)
+    cfg = model.config
+    return code_names(cfg.pyramid_levels, reads_sali(cfg.detail_hidden, cfg.flow_guided))
 
 
 def repeated_code(
@@ -82,12 +84,12 @@ class BlockEncoder(nn.Module):
         cfg = net.config
         weighted, _ = net.sali(fold(pad_to_multiple(block, cfg.size_multiple), cfg.sali_stride))
         pyramid = net.block_pyramid(weighted)
-        detail = () if net.detail is None else (weighted,)
+        sali = (weighted,) if reads_sali(cfg.detail_hidden, cfg.flow_guided) else ()
         return (
             *pyramid,
             *neighbour_terms(net.align, pyramid),
             *key_terms(net.align, pyramid),
-            *detail,
+            *sali,
         )
 
 
@@ -97,8 +99,8 @@ class AlignFuseHead(nn.Module):
     Inputs in the order of :func:`~spk2img.model.block_code.code_names`: ``feat_l*``
     ``(b, blocks, c, h_l, w_l)`` (every block in temporal order), ``nbr_l*``
     ``(b, blocks - 1, c, h_l, w_l)`` (the neighbours in order), ``key_l*``
-    ``(b, c, h_l, w_l)`` (the key block's) and, with a detail refinement, every block's
-    ``sali`` ``(b, blocks, n * r * r, hp / r, wp / r)``.
+    ``(b, c, h_l, w_l)`` (the key block's) and, with a detail refinement or a motion-guided
+    alignment, every block's ``sali`` ``(b, blocks, n * r * r, hp / r, wp / r)``.
     """
 
     def __init__(self, model: Spk2ImgNet) -> None:
@@ -111,7 +113,7 @@ class AlignFuseHead(nn.Module):
         pyramid, nbr_terms, key_terms_ = (
             list(codes[i * levels : (i + 1) * levels]) for i in range(3)
         )
-        weighted = codes[3 * levels] if net.detail is not None else None
+        weighted = codes[3 * levels] if reads_sali(cfg.detail_hidden, cfg.flow_guided) else None
         motion = None if weighted is None else net.block_motion(weighted)
         key_feat = pyramid[0][:, key]  # (b, c, h_f, w_f)
         aligned = net.align.align_levels(

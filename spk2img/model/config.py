@@ -8,6 +8,7 @@ width, depth or resolution.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
@@ -153,14 +154,14 @@ class Spk2ImgNetConfig:
     Lucas-Kanade flow between the blocks' intensities at the feature stride (no weights;
     False: read unaligned)."""
     flow_guided: bool = False
-    """The blocks' motion that aligns the detail refinement (so ``detail_aligned`` is needed)
-    also guides the alignment: each pyramid level's deformable conv adds it to its offsets,
-    which then learn what is left of the motion (flow-guided deformable alignment, as in
-    BasicVSR++; not in the paper)."""
+    """The blocks' motion (the one that aligns the detail refinement, where there is one) guides
+    the alignment: each pyramid level's deformable conv adds it to its offsets, which then learn
+    what is left of the motion (flow-guided deformable alignment, as in BasicVSR++; not in the
+    paper). No weights: a checkpoint trained without it loads with it."""
     motion_levels: int = 1
     """Pyramid levels of the blocks' Lucas-Kanade motion (coarse to fine, each half the size
     of the one below; :func:`~spk2img.model.motion.block_motion`), for members with
-    ``detail_aligned``: ``2**(levels-1)`` times larger motion is followed."""
+    ``detail_aligned`` or ``flow_guided``: ``2**(levels-1)`` times larger motion is followed."""
     motion_window: int = 5
     """Odd side, in pixels of the motion's resolution (the feature stride), of the
     neighbourhood each Lucas-Kanade system sums over."""
@@ -172,6 +173,10 @@ class Spk2ImgNetConfig:
     spike count's noise does."""
     motion_iterations: int = 3
     """Gauss-Newton steps of the Lucas-Kanade motion at each pyramid level."""
+    motion_stride: int = 0
+    """Resolution step of the blocks' motion, a multiple of ``feature_stride`` (0: the feature
+    stride): a full-size member's motion found at 1/4 of its size, over four times the
+    displacement per window pixel and from 16 pixels' spikes each, then upsampled to it."""
 
     def __post_init__(self) -> None:
         if self.num_blocks % 2 != 1:
@@ -196,12 +201,15 @@ class Spk2ImgNetConfig:
             raise ValueError(f"detail_depth must be >= 1, got {self.detail_depth}")
         if self.detail_aligned and not self.detail_hidden:
             raise ValueError("detail_aligned needs a detail refinement (detail_hidden > 0)")
-        if self.flow_guided and not self.detail_aligned:
-            raise ValueError("flow_guided needs the aligned detail refinement (detail_aligned)")
         if not 1 <= self.motion_levels <= self.pyramid_levels:
             raise ValueError(
                 f"motion_levels must be 1 .. pyramid_levels={self.pyramid_levels}, "
                 f"got {self.motion_levels}"
+            )
+        if self.motion_stride < 0 or self.motion_stride % self.feature_stride:
+            raise ValueError(
+                f"motion_stride must be 0 or a multiple of feature_stride={self.feature_stride}, "
+                f"got {self.motion_stride}"
             )
         if self.motion_window < 1 or self.motion_window % 2 != 1 or self.motion_iterations < 1:
             raise ValueError(
@@ -229,10 +237,18 @@ class Spk2ImgNetConfig:
         return self.geometry.window_frames
 
     @property
+    def motion_scale(self) -> int:
+        """Resolution step of the blocks' motion (``motion_stride``, 0: the feature stride)."""
+        return self.motion_stride or self.feature_stride
+
+    @property
     def size_multiple(self) -> int:
         """Height and width are padded to a multiple of this for the feature stride and the
-        alignment pyramid."""
-        return self.feature_stride * 2 ** (self.pyramid_levels - 1)
+        alignment pyramid (and the blocks' motion pyramid, for members that read it)."""
+        pyramid = self.feature_stride * 2 ** (self.pyramid_levels - 1)
+        if not (self.detail_aligned or self.flow_guided):
+            return pyramid
+        return math.lcm(pyramid, self.motion_scale * 2 ** (self.motion_levels - 1))
 
 
 PAPER = Spk2ImgNetConfig()
@@ -310,33 +326,43 @@ MOTION_FIELDS = (
     "motion_damping",
     "motion_damping_per_intensity",
     "motion_iterations",
+    "motion_stride",
 )
 """The Lucas-Kanade motion's settings: no weights, so they may change freely (every weight is
 loaded as stored; the motion it reads is another)."""
 
 
+MOTION_SETTINGS = {"guided": "flow_guided"} | {
+    name.removeprefix("motion_"): name for name in MOTION_FIELDS
+}
+"""The names :func:`with_motion` takes -> the config's weight-free fields they set: whether the
+motion guides the alignment (``guided``, 0 or 1), and its settings."""
+
+
 def with_motion(config: Spk2ImgNetConfig, settings: str) -> Spk2ImgNetConfig:
     """``config`` with the motion settings ``settings`` over its own: comma-separated
-    ``NAME=VALUE`` pairs of :data:`MOTION_FIELDS` without their ``motion_`` prefix (``""``:
-    ``config`` as it is), e.g. ``levels=2,window=15,damping=1e-4,damping_per_intensity=1e-3``.
+    ``NAME=VALUE`` pairs of :data:`MOTION_SETTINGS` (``""``: ``config`` as it is), e.g.
+    ``guided=1,levels=3,window=15,damping=1e-4,damping_per_intensity=1e-3``. None of them has
+    weights, so a checkpoint of ``config`` loads into the result as it is.
 
-    Raises ``ValueError`` naming what is wrong: an unknown name, a value that is not a number
-    of the field's type, or settings the config refuses (:class:`Spk2ImgNetConfig`)."""
-    changes: dict[str, int | float] = {}
+    Raises ``ValueError`` naming what is wrong: an unknown name, a value that is not of the
+    field's type (an integer, a number, 0 or 1), or settings the config refuses
+    (:class:`Spk2ImgNetConfig`)."""
+    changes: dict[str, bool | int | float] = {}
     for pair in filter(None, (p.strip() for p in settings.split(","))):
-        name, sep, value = pair.partition("=")
-        field_name = f"motion_{name.strip()}"
-        if not sep or field_name not in MOTION_FIELDS:
-            names = ", ".join(f.removeprefix("motion_") for f in MOTION_FIELDS)
+        name, sep, value = (part.strip() for part in pair.partition("="))
+        if not sep or name not in MOTION_SETTINGS:
+            names = ", ".join(MOTION_SETTINGS)
             raise ValueError(f"motion setting {pair!r}: use NAME=VALUE with NAME one of {names}")
+        field_name = MOTION_SETTINGS[name]
         kind = type(getattr(config, field_name))
+        wanted = {bool: "0 or 1", int: "an integer"}.get(kind, "a number")
         try:
-            changes[field_name] = kind(value.strip())
+            if kind is bool and value not in ("0", "1"):
+                raise ValueError(value)
+            changes[field_name] = bool(int(value)) if kind is bool else kind(value)
         except ValueError:
-            wanted = "an integer" if kind is int else "a number"
-            raise ValueError(
-                f"motion setting {pair!r}: {value.strip()!r} is not {wanted}"
-            ) from None
+            raise ValueError(f"motion setting {pair!r}: {value!r} is not {wanted}") from None
     return replace(config, **changes)
 
 

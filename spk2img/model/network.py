@@ -18,6 +18,7 @@ from .features import FeatureExtractor
 from .fusion import ReliabilityFusion
 from .motion import block_motion
 from .sali import LightInference, fold, refold, unfold
+from .warp import upsample_flow
 
 
 def pad_to_multiple(x: torch.Tensor, multiple: int) -> torch.Tensor:
@@ -139,20 +140,22 @@ class Spk2ImgNet(nn.Module):
         """Every block's weighted SALI estimates ``(b, blocks, n * s * s, hp / s, wp / s)`` ->
         each neighbour's motion to the key at the feature stride ``(b * neighbours, 2, h_f,
         w_f)`` (:func:`~spk2img.model.motion.block_motion`), for members that align their
-        detail refinement (else None)."""
+        detail refinement or their features by it (else None)."""
         cfg = self.config
-        if not cfg.detail_aligned:
+        if not (cfg.detail_aligned or cfg.flow_guided):
             return None
-        return block_motion(
+        motion = block_motion(
             weighted,
             cfg.sali_stride,
-            cfg.feature_stride,
+            cfg.motion_scale,
             levels=cfg.motion_levels,
             window=cfg.motion_window,
             damping=cfg.motion_damping,
             damping_per_intensity=cfg.motion_damping_per_intensity,
             iterations=cfg.motion_iterations,
         )
+        scale = cfg.motion_scale // cfg.feature_stride
+        return motion if scale == 1 else upsample_flow(motion, scale)
 
     def fuse(
         self,

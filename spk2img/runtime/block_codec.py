@@ -16,7 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from spk2img.errors import InputError
-from spk2img.model.block_code import code_names, code_role, role_blocks
+from spk2img.model.block_code import code_names, code_role, reads_sali, role_blocks
 from spk2img.model.config import Geometry
 from spk2img.runtime.onnx_backend import create_session, model_path, run_session
 
@@ -93,9 +93,8 @@ class OnnxBlockCodec:
         self.metadata = meta[0]
         self.geometry = Geometry.from_metadata(self.metadata)
         config = json.loads(self.metadata["config"])
-        self.names = code_names(
-            int(config["pyramid_levels"]), int(config.get("detail_hidden", 0)) > 0
-        )
+        sali = reads_sali(int(config.get("detail_hidden", 0)), bool(config.get("flow_guided")))
+        self.names = code_names(int(config["pyramid_levels"]), sali)
 
     def encode(self, block: np.ndarray) -> BlockCode:
         feeds = {"block": np.ascontiguousarray(block[None], np.float32)}

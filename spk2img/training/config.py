@@ -141,10 +141,11 @@ class TrainConfig:
     )
     motion: str = flag(
         "",
-        "the blocks' Lucas-Kanade motion over the member's own, as NAME=VALUE pairs "
-        "(levels, window, damping, damping_per_intensity, iterations; e.g. levels=2,window=15,"
-        "damping=1e-4,damping_per_intensity=1e-3,iterations=4); weight-free, so --init takes "
-        "any checkpoint of the member; empty: the member's",
+        "the blocks' Lucas-Kanade motion over the member's own, as NAME=VALUE pairs: guided "
+        "(1: it guides the alignment's offsets), levels, window, damping, "
+        "damping_per_intensity, iterations (e.g. levels=2,window=15,damping=1e-4,"
+        "damping_per_intensity=1e-3,iterations=4); weight-free, so --init takes any "
+        "checkpoint of the member; empty: the member's",
     )
     init: str = flag(
         "",
@@ -181,12 +182,12 @@ class TrainConfig:
         check_final_term(self.loss)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"--ema-decay {self.ema_decay}: must be in [0, 1)")
-        if self.motion and not MEMBERS[self.member].detail_aligned:
-            raise ValueError(
-                f"--motion: {self.member} does not read the blocks' motion (only members with "
-                "detail_aligned do: cpu)"
-            )
         try:
-            with_motion(MEMBERS[self.member], self.motion)
+            moved = with_motion(MEMBERS[self.member], self.motion)
         except ValueError as exc:
             raise ValueError(f"--motion {self.motion}: {exc}") from None
+        if self.motion and not (moved.detail_aligned or moved.flow_guided):
+            raise ValueError(
+                f"--motion {self.motion}: {self.member} does not read the blocks' motion: "
+                "add guided=1 (the motion guides its alignment)"
+            )

@@ -33,7 +33,7 @@ from spk2img.model.checkpoint import (
     save_checkpoint,
     stored_config,
 )
-from spk2img.model.config import MOTION_FIELDS, get_config, with_motion
+from spk2img.model.config import MOTION_SETTINGS, get_config, with_motion
 from spk2img.model.growth import grow_weights
 from spk2img.model.network import Spk2ImgNet
 from spk2img.provenance import git_commit
@@ -361,8 +361,8 @@ def train(cfg: TrainConfig) -> dict:
 
 
 def motion_of(config) -> dict:
-    """``config``'s motion settings (:data:`~spk2img.model.config.MOTION_FIELDS`)."""
-    return {name: getattr(config, name) for name in MOTION_FIELDS}
+    """``config``'s weight-free motion fields (:data:`~spk2img.model.config.MOTION_SETTINGS`)."""
+    return {name: getattr(config, name) for name in MOTION_SETTINGS.values()}
 
 
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
