@@ -1,7 +1,9 @@
 """The scripts a lent GPU runs, checked on the CPU at small sizes (they name their device)."""
 
+import dataclasses
 import json
 import os
+import shlex
 import shutil
 import struct
 import subprocess
@@ -18,7 +20,8 @@ from isolation import without_modules
 from PIL import Image
 from script_loader import load_script
 
-from spk2img.cli import main
+from spk2img.cli import build_parser, main
+from spk2img.training.config import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -304,3 +307,22 @@ def test_a_runs_summary_carries_its_last_alignment_probe():
     records[-1].pop("alignment_slopes")
     metrics = "\n".join(json.dumps(r) for r in records).encode()
     assert load_script("gpu_results").run_summary(metrics)["alignment_slopes"] is None
+
+
+def test_every_listed_gpu_run_is_a_valid_training_run_of_this_tree():
+    """Each run of scripts/gpu_runs.txt, with the flags the session adds, makes a valid
+    ``TrainConfig`` (a bad flag would waste the GPU session it is found in), starts from a
+    checkpoint this tree holds, and has a name of its own."""
+    names = []
+    for line in (ROOT / "scripts" / "gpu_runs.txt").read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        name, *flags = shlex.split(line)
+        session = ["--device", "cuda", "--synthesis", "torch", "--run-dir", f"runs/{name}"]
+        args = build_parser().parse_args(["train", *session, *flags])
+        fields = {f.name for f in dataclasses.fields(TrainConfig)}
+        values = {k: v for k, v in vars(args).items() if k in fields and v is not None}
+        config = TrainConfig(**values)
+        assert (ROOT / config.init).is_file(), config.init
+        names.append(name)
+    assert len(names) == len(set(names)) >= 2
