@@ -163,8 +163,8 @@ class Spk2ImgNetConfig:
     of the one below; :func:`~spk2img.model.motion.block_motion`), for members with
     ``detail_aligned`` or ``flow_guided``: ``2**(levels-1)`` times larger motion is followed."""
     motion_window: int = 5
-    """Odd side, in pixels of the motion's resolution (the feature stride), of the
-    neighbourhood each Lucas-Kanade system sums over."""
+    """Odd side, in pixels of the motion's resolution (``motion_stride``; the feature stride
+    by default), of the neighbourhood each Lucas-Kanade system sums over."""
     motion_damping: float = 1e-3
     """Constant damping of each Lucas-Kanade system (squared intensity of SALI's estimates per
     pixel; ``spk2img.model.motion.MOTION_DAMPING``)."""

@@ -33,20 +33,17 @@ from typing import TYPE_CHECKING
 import torch
 from torch import nn
 
-from .config import Spk2ImgNetConfig
+from .config import MOTION_FIELDS, Spk2ImgNetConfig
 from .deform_conv import ModulatedDeformConv2d
 
 if TYPE_CHECKING:
     from .network import Spk2ImgNet
-
-from .config import MOTION_FIELDS  # no weights: they may change freely
 
 GROWN_FIELDS = ("channels", "deformable_groups", "reliability_hidden", "fusion_hidden")
 """Widths that may grow (none may shrink); ``residual_blocks`` may grow too."""
 
 DETAIL_FIELDS = ("detail_hidden", "detail_depth", "detail_aligned", "flow_guided")
 """The detail refinement's shape and the motion's use, which may grow too."""
-
 
 # the channel layout of each grown weight, (output, input), by parameter name; a layout names
 # the widths whose tensors are concatenated along that axis: "c" the feature channels, "c*" as

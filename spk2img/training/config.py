@@ -143,9 +143,9 @@ class TrainConfig:
         "",
         "the blocks' Lucas-Kanade motion over the member's own, as NAME=VALUE pairs: guided "
         "(1: it guides the alignment's offsets), levels, window, damping, "
-        "damping_per_intensity, iterations (e.g. levels=2,window=15,damping=1e-4,"
-        "damping_per_intensity=1e-3,iterations=4); weight-free, so --init takes any "
-        "checkpoint of the member; empty: the member's",
+        "damping_per_intensity, iterations, stride (where it is found, a multiple of the "
+        "feature stride; e.g. guided=1,stride=4,window=15,damping=1e-4); weight-free, so "
+        "--init takes any checkpoint of the member; empty: the member's",
     )
     init: str = flag(
         "",
