@@ -154,10 +154,7 @@ def train(cfg: TrainConfig) -> dict:
     if last.is_file():
         state = load_checkpoint(last)
         stored = stored_config(state, last)
-        if (
-            stored != model.config
-            and dataclasses.replace(stored, **motion_of(model.config)) == model.config
-        ):
+        if stored != model.config and shape_of(stored) == shape_of(model.config):
             raise InputError(
                 f"{last} was trained with other motion settings ({motion_of(stored)}): continue "
                 "it with the --motion it was started with"
@@ -363,6 +360,12 @@ def train(cfg: TrainConfig) -> dict:
 def motion_of(config) -> dict:
     """``config``'s weight-free motion fields (:data:`~spk2img.model.config.MOTION_SETTINGS`)."""
     return {name: getattr(config, name) for name in MOTION_SETTINGS.values()}
+
+
+def shape_of(config) -> dict:
+    """``config``'s fields other than its motion's (:func:`motion_of`), as a dict."""
+    motion = MOTION_SETTINGS.values()
+    return {k: v for k, v in dataclasses.asdict(config).items() if k not in motion}
 
 
 def load_initial_weights(model: Spk2ImgNet, path: str) -> dict:
