@@ -54,15 +54,11 @@ def sampling_shifts(model: Spk2ImgNet, spikes: np.ndarray) -> dict[str, np.ndarr
 
     def record(name: str):
         def hook(conv: ModulatedDeformConv2d, inputs: tuple, _output: torch.Tensor) -> None:
-            condition, flow = inputs[1], inputs[2] if len(inputs) > 2 else None
-            taps = conv.kernel_size**2
-            offset = conv.conv_offset_mask(condition)[:, : 2 * taps * conv.groups]
-            offset = offset.unflatten(1, (conv.groups, taps, 2))  # (b, g, k, 2, h, w)
-            if flow is not None:
-                offset = offset + flow[:, None, None]
-            edge = BORDER if min(offset.shape[-2:]) > 4 * BORDER else 0  # small maps: all
-            inner = offset[..., edge : offset.shape[-2] - edge, edge : offset.shape[-1] - edge]
-            shifts[name] = inner.mean(dim=(1, 2, 4, 5)).double().cpu().numpy()
+            flow = inputs[2] if len(inputs) > 2 else None
+            shift = conv.mean_shift(conv.conv_offset_mask(inputs[1]), flow)  # (b, 2, h, w)
+            edge = BORDER if min(shift.shape[-2:]) > 4 * BORDER else 0  # small maps: all
+            inner = shift[..., edge : shift.shape[-2] - edge, edge : shift.shape[-1] - edge]
+            shifts[name] = inner.mean(dim=(2, 3)).double().cpu().numpy()
 
         return hook
 

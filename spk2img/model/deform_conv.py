@@ -120,6 +120,17 @@ class ModulatedDeformConv2d(nn.Module):
         nn.init.zeros_(self.conv_offset_mask.weight)
         nn.init.zeros_(self.conv_offset_mask.bias)
 
+    def mean_shift(
+        self, offset_mask: torch.Tensor, flow: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The mean over taps and groups of the offsets in ``conv_offset_mask``'s output
+        ``(b, 3 * K * groups, h, w)``, plus the guiding ``flow`` ``(b, 2, h, w)`` if any: where
+        the conv samples, on average, relative to a plain conv, ``(b, 2, h, w)`` ``(dy, dx)``
+        px (:mod:`spk2img.evaluation.alignment_probe`, ``--align-weight``)."""
+        taps = self.kernel_size**2
+        offset = offset_mask[:, : 2 * taps * self.groups].unflatten(1, (-1, 2)).mean(dim=1)
+        return offset if flow is None else offset + flow
+
     def forward(
         self, x: torch.Tensor, condition: torch.Tensor, flow: torch.Tensor | None = None
     ) -> torch.Tensor:

@@ -139,6 +139,12 @@ class TrainConfig:
         "(0.999: about the last 1,000 steps); validations score it and best.pt holds it; "
         "0: off",
     )
+    align_weight: float = flag(
+        0.0,
+        "weight of the alignment term added to the loss: each pyramid level's aligning conv, "
+        "sampling the neighbour's ground truth at its mean offset, should give the key's "
+        '(docs/architecture.md, "Teaching the alignment"); 0: off, the paper\'s loss',
+    )
     motion: str = flag(
         "",
         "the blocks' Lucas-Kanade motion over the member's own, as NAME=VALUE pairs: guided "
@@ -180,6 +186,8 @@ class TrainConfig:
         check_share("ideal_share", self.ideal_share)
         check_share("display_share", self.display_share)
         check_final_term(self.loss)
+        if not (math.isfinite(self.align_weight) and self.align_weight >= 0):
+            raise ValueError(f"--align-weight {self.align_weight}: must be a number >= 0")
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"--ema-decay {self.ema_decay}: must be in [0, 1)")
         try:

@@ -11,7 +11,7 @@ import math
 import os
 import sys
 import time
-from contextlib import closing
+from contextlib import closing, nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,7 @@ from spk2img.provenance import git_commit
 from spk2img.sim.sensor_fit import FITTED_PRESET, load_preset
 from spk2img.sim.sources import SourceIndex
 
+from .alignment_loss import alignment_term, recorded_shifts
 from .config import TrainConfig
 from .data import Batches, DataMix, SampleMaker
 from .ema import WeightAverage
@@ -279,9 +280,15 @@ def train(cfg: TrainConfig) -> dict:
             else:
                 batch = (torch.from_numpy(a).to(device) for a in batches.next())
             spikes, truth = (a.contiguous(memory_format=memory_format) for a in batch)
-            with torch.autocast(device.type, torch.bfloat16, enabled=bf16):
+            with (
+                torch.autocast(device.type, torch.bfloat16, enabled=bf16),
+                recorded_shifts(model) if cfg.align_weight else nullcontext({}) as shifts,
+            ):
                 image, estimates = net(spikes)
                 loss = hierarchical_loss(image.float(), estimates.float(), truth, cfg.loss)
+            if cfg.align_weight:
+                align = alignment_term(shifts, truth, model.config.feature_stride)
+                loss = loss + cfg.align_weight * align
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -305,6 +312,7 @@ def train(cfg: TrainConfig) -> dict:
                     kind="train",
                     step=done,
                     loss=loss.item(),
+                    **({"align": align.item()} if cfg.align_weight else {}),
                     lr=learning_rate(cfg, step),
                     steps_per_s=rate,
                     eta_s=eta,
