@@ -123,7 +123,11 @@ class _Run:
         self.main = self.rank == 0
 
     def close(self):
+        """Leave the group together: every rank waits at a barrier before the group goes, so
+        none tears gloo down while another still has work on it (a rank that did aborted at
+        exit, SIGABRT, after a finished run)."""
         if self.world > 1:
+            dist.barrier()
             dist.destroy_process_group()
 
 
