@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from spk2img.model.deform_conv import ModulatedDeformConv2d
+from spk2img.model.deform_conv import ModulatedDeformConv2d, recorded_mean_shifts
 from spk2img.model.network import Spk2ImgNet
 from spk2img.sim.scenes import Motion, MovingImage
 from spk2img.sim.simulator import FILM_FRAMES, SensorConfig, simulate
@@ -50,30 +50,19 @@ def sampling_shifts(model: Spk2ImgNet, spikes: np.ndarray) -> dict[str, np.ndarr
     0/1: ``{conv name: (neighbours, 2) float (dy, dx)}`` in that conv's feature pixels, over its
     taps, groups and the pixels :data:`BORDER` away from the edges, the flow that guides it
     included."""
-    shifts: dict[str, np.ndarray] = {}
-
-    def record(name: str):
-        def hook(conv: ModulatedDeformConv2d, inputs: tuple, _output: torch.Tensor) -> None:
-            flow = inputs[2] if len(inputs) > 2 else None
-            shift = conv.mean_shift(conv.conv_offset_mask(inputs[1]), flow)  # (b, 2, h, w)
-            edge = BORDER if min(shift.shape[-2:]) > 4 * BORDER else 0  # small maps: all
-            inner = shift[..., edge : shift.shape[-2] - edge, edge : shift.shape[-1] - edge]
-            shifts[name] = inner.mean(dim=(2, 3)).double().cpu().numpy()
-
-        return hook
-
-    hooks = [
-        module.register_forward_hook(record(name))
+    convs = {
+        name: module
         for name, module in model.named_modules()
         if isinstance(module, ModulatedDeformConv2d)
-    ]
+    }
     device = next(model.parameters()).device
-    try:
-        with torch.no_grad():
-            model.eval()(torch.from_numpy(spikes[None].astype(np.float32)).to(device))
-    finally:
-        for hook in hooks:
-            hook.remove()
+    with recorded_mean_shifts(convs) as recorded, torch.no_grad():
+        model.eval()(torch.from_numpy(spikes[None].astype(np.float32)).to(device))
+    shifts: dict[str, np.ndarray] = {}
+    for name, shift in recorded.items():  # (b, 2, h, w)
+        edge = BORDER if min(shift.shape[-2:]) > 4 * BORDER else 0  # small maps: all
+        inner = shift[..., edge : shift.shape[-2] - edge, edge : shift.shape[-1] - edge]
+        shifts[name] = inner.mean(dim=(2, 3)).double().cpu().numpy()
     return shifts
 
 

@@ -13,6 +13,8 @@ All ``K`` taps of all groups are sampled by one ``grid_sample`` call on a
 from __future__ import annotations
 
 import math
+from collections.abc import Hashable, Iterator, Mapping
+from contextlib import contextmanager
 
 import torch
 import torch.nn.functional as F
@@ -146,3 +148,37 @@ class ModulatedDeformConv2d(nn.Module):
         return modulated_deform_conv2d(
             x, offset, torch.sigmoid(mask_logits), self.weight, self.bias, self.groups
         )
+
+
+@contextmanager
+def recorded_mean_shifts(
+    convs: Mapping[Hashable, ModulatedDeformConv2d],
+) -> Iterator[dict[Hashable, torch.Tensor]]:
+    """While inside, each forward pass through a conv of ``convs`` records its
+    :meth:`~ModulatedDeformConv2d.mean_shift` ``(b, 2, h, w)`` (with its gradient, if any) under
+    its key in the yielded dict, from the offsets the conv computed itself (nothing is
+    recomputed)."""
+    shifts: dict[Hashable, torch.Tensor] = {}
+    flows: dict[Hashable, torch.Tensor | None] = {}
+
+    def take_flow(key: Hashable):
+        def hook(_conv: ModulatedDeformConv2d, inputs: tuple) -> None:
+            flows[key] = inputs[2] if len(inputs) > 2 else None
+
+        return hook
+
+    def take_offsets(key: Hashable, conv: ModulatedDeformConv2d):
+        def hook(_module: nn.Module, _inputs: tuple, offset_mask: torch.Tensor) -> None:
+            shifts[key] = conv.mean_shift(offset_mask, flows.pop(key))
+
+        return hook
+
+    handles = []
+    for key, conv in convs.items():
+        handles.append(conv.register_forward_pre_hook(take_flow(key)))
+        handles.append(conv.conv_offset_mask.register_forward_hook(take_offsets(key, conv)))
+    try:
+        yield shifts
+    finally:
+        for handle in handles:
+            handle.remove()

@@ -14,41 +14,24 @@ carries every neighbour onto the key, whatever the motion; at inference nothing 
 
 from __future__ import annotations
 
-from contextlib import contextmanager
-
 import torch
 import torch.nn.functional as F
 
 from spk2img.model.block_ops import per_neighbour, without_key
-from spk2img.model.deform_conv import ModulatedDeformConv2d
+from spk2img.model.deform_conv import recorded_mean_shifts
 from spk2img.model.network import Spk2ImgNet
 from spk2img.model.warp import warp
 
 
-@contextmanager
 def recorded_shifts(model: Spk2ImgNet):
-    """While inside, every forward pass of ``model`` records each pyramid level's aligning
-    conv's mean sampling shift (:meth:`ModulatedDeformConv2d.mean_shift`, with its gradient)
-    into the yielded dict: ``{level: (b * neighbours, 2, h_l, w_l)}``, ``(dy, dx)`` in that
-    level's feature pixels, the neighbours of each window in temporal order."""
-    shifts: dict[int, torch.Tensor] = {}
-
-    def record(level: int):
-        def hook(conv: ModulatedDeformConv2d, inputs: tuple, _output: torch.Tensor) -> None:
-            flow = inputs[2] if len(inputs) > 2 else None
-            shifts[level] = conv.mean_shift(conv.conv_offset_mask(inputs[1]), flow)
-
-        return hook
-
-    hooks = [
-        conv.register_forward_hook(record(int(name[1:])))
-        for name, conv in model.align.dcn_pack.items()
-    ]
-    try:
-        yield shifts
-    finally:
-        for hook in hooks:
-            hook.remove()
+    """A context inside which every forward pass of ``model`` records each pyramid level's
+    aligning conv's mean sampling shift (:func:`~spk2img.model.deform_conv.recorded_mean_shifts`,
+    with its gradient) into the yielded dict: ``{level: (b * neighbours, 2, h_l, w_l)}``,
+    ``(dy, dx)`` in that level's feature pixels, the neighbours of each window in temporal
+    order."""
+    return recorded_mean_shifts(
+        {int(name[1:]): conv for name, conv in model.align.dcn_pack.items()}
+    )
 
 
 def alignment_term(
