@@ -67,15 +67,27 @@ class PCDAlignment(nn.Module):
     and the result is fused with the upsampled level ``l + 1`` result. LeakyReLU 0.1 after every
     conv except the level-1 fusion (as in EDVR).
 
+    Where ``reads_motion``, each level's first offset feature also reads the neighbour's
+    motion to the key (the ``flow`` of :meth:`forward`, at the level's size and in its pixels)
+    through a 3x3 conv of its own that starts at zero (as BasicVSR++'s offset convs read the
+    flow), so the network starts as it was and correcting a guide that finds only part of the
+    motion is linear in what the offsets are computed from.
+
     Args:
         channels: feature channels.
         levels: pyramid levels.
         groups: deformable groups of every deformable conv.
+        reads_motion: whether the offset features read the motion (it must then be given).
     """
 
-    def __init__(self, channels: int, levels: int, groups: int) -> None:
+    def __init__(self, channels: int, levels: int, groups: int, reads_motion: bool = False) -> None:
         super().__init__()
         self.levels = levels
+        self.motion_conv = nn.ModuleDict() if reads_motion else None
+        for i in range(levels, 0, -1) if reads_motion else ():
+            self.motion_conv[f"l{i}"] = _conv(2, channels)
+            nn.init.zeros_(self.motion_conv[f"l{i}"].weight)
+            nn.init.zeros_(self.motion_conv[f"l{i}"].bias)
         self.offset_conv1 = nn.ModuleDict()
         self.offset_conv2 = nn.ModuleDict()
         self.offset_conv3 = nn.ModuleDict()
@@ -108,7 +120,8 @@ class PCDAlignment(nn.Module):
             key: the key's pyramid, the same shapes.
             flow: the neighbour's motion to the key ``(b, 2, h, w)`` (``(dy, dx)``, level-1
                 pixels), or None: each pyramid level's deformable conv adds it (averaged and
-                scaled to the level) to its offsets.
+                scaled to the level) to its offsets, and where ``reads_motion`` its offset
+                features read it too.
 
         Returns:
             The aligned neighbour ``(b, c, h, w)``.
@@ -139,11 +152,16 @@ class PCDAlignment(nn.Module):
         Returns:
             The aligned neighbour ``(b, c, h, w)``.
         """
+        if self.motion_conv is not None and flow is None:
+            raise ValueError("this alignment's offsets read the motion: give its flow")
         upsampled_offset: torch.Tensor | None = None  # from level l + 1, (b, c, h_l, w_l)
         upsampled_feat: torch.Tensor | None = None
         for i in range(self.levels, 0, -1):
             level = f"l{i}"
-            offset = self.lrelu(first_offsets[i - 1])  # (b, c, h_l, w_l)
+            offset = first_offsets[i - 1]  # (b, c, h_l, w_l)
+            if self.motion_conv is not None:
+                offset = offset + self.motion_conv[level](level_flow(flow, i))
+            offset = self.lrelu(offset)
             if upsampled_offset is None:  # coarsest level
                 offset = self.lrelu(self.offset_conv2[level](offset))
             else:

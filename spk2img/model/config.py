@@ -158,6 +158,13 @@ class Spk2ImgNetConfig:
     the alignment: each pyramid level's deformable conv adds it to its offsets, which then learn
     what is left of the motion (flow-guided deformable alignment, as in BasicVSR++; not in the
     paper). No weights: a checkpoint trained without it loads with it."""
+    offsets_read_motion: bool = False
+    """Each pyramid level's offset feature also reads the blocks' motion (needs
+    ``flow_guided``), through a 3x3 conv per level that starts at zero (as BasicVSR++'s offset
+    convs read the flow): the offsets can then learn a gain on a guide that finds part of the
+    motion, which they cannot read from the features alone (docs/architecture.md, "Teaching
+    the alignment"). Adds ``levels * (18 * channels + channels)`` weights; a checkpoint without
+    them grows into it unchanged (:mod:`spk2img.model.growth`)."""
     motion_levels: int = 1
     """Pyramid levels of the blocks' Lucas-Kanade motion (coarse to fine, each half the size
     of the one below; :func:`~spk2img.model.motion.block_motion`), for members with
@@ -201,6 +208,8 @@ class Spk2ImgNetConfig:
             raise ValueError(f"detail_depth must be >= 1, got {self.detail_depth}")
         if self.detail_aligned and not self.detail_hidden:
             raise ValueError("detail_aligned needs a detail refinement (detail_hidden > 0)")
+        if self.offsets_read_motion and not self.flow_guided:
+            raise ValueError("offsets_read_motion needs the motion to guide them (flow_guided)")
         if not 1 <= self.motion_levels <= self.pyramid_levels:
             raise ValueError(
                 f"motion_levels must be 1 .. pyramid_levels={self.pyramid_levels}, "
@@ -332,18 +341,20 @@ MOTION_FIELDS = (
 loaded as stored; the motion it reads is another)."""
 
 
-MOTION_SETTINGS = {"guided": "flow_guided"} | {
+MOTION_SETTINGS = {"guided": "flow_guided", "read": "offsets_read_motion"} | {
     name.removeprefix("motion_"): name for name in MOTION_FIELDS
 }
-"""The names :func:`with_motion` takes -> the config's weight-free fields they set: whether the
-motion guides the alignment (``guided``, 0 or 1), and its settings."""
+"""The names :func:`with_motion` takes -> the config's fields they set: whether the motion
+guides the alignment (``guided``, 0 or 1), whether the offset convs read it too (``read``, 0 or
+1: the only one with weights, which start at zero), and its weight-free settings."""
 
 
 def with_motion(config: Spk2ImgNetConfig, settings: str) -> Spk2ImgNetConfig:
     """``config`` with the motion settings ``settings`` over its own: comma-separated
     ``NAME=VALUE`` pairs of :data:`MOTION_SETTINGS` (``""``: ``config`` as it is), e.g.
-    ``guided=1,levels=3,window=15,damping=1e-4,damping_per_intensity=1e-3``. None of them has
-    weights, so a checkpoint of ``config`` loads into the result as it is.
+    ``guided=1,levels=3,window=15,damping=1e-4,damping_per_intensity=1e-3``. None of them but
+    ``read`` has weights, so a checkpoint of ``config`` loads into the result as it is; with
+    ``read=1`` it grows into it (the new convs start at zero: :mod:`spk2img.model.growth`).
 
     Raises ``ValueError`` naming what is wrong: an unknown name, a value that is not of the
     field's type (an integer, a number, 0 or 1), or settings the config refuses

@@ -21,7 +21,8 @@ channel stays in its old offset group. SALI and the blocks' geometry do not chan
 The detail refinement (members whose fusion runs at reduced size) may be added, widened,
 deepened or aligned, and the blocks' motion may come to guide the alignment
 (:meth:`~spk2img.model.detail.DetailRefinement.grow_from`): a refinement added or grown
-starts adding nothing new, and the motion adds nothing on a still scene.
+starts adding nothing new, and the motion adds nothing on a still scene. The alignment's offset
+features may come to read the motion (``offsets_read_motion``): those convs start at zero.
 """
 
 from __future__ import annotations
@@ -42,7 +43,13 @@ if TYPE_CHECKING:
 GROWN_FIELDS = ("channels", "deformable_groups", "reliability_hidden", "fusion_hidden")
 """Widths that may grow (none may shrink); ``residual_blocks`` may grow too."""
 
-DETAIL_FIELDS = ("detail_hidden", "detail_depth", "detail_aligned", "flow_guided")
+DETAIL_FIELDS = (
+    "detail_hidden",
+    "detail_depth",
+    "detail_aligned",
+    "flow_guided",
+    "offsets_read_motion",
+)
 """The detail refinement's shape and the motion's use, which may grow too."""
 
 # the channel layout of each grown weight, (output, input), by parameter name; a layout names
@@ -105,7 +112,7 @@ def _detail_problems(stored: Spk2ImgNetConfig, config: Spk2ImgNetConfig) -> list
         return ["the detail refinement would be removed"]
     undone = [
         name
-        for name in ("detail_hidden", "detail_aligned", "flow_guided")
+        for name in ("detail_hidden", "detail_aligned", "flow_guided", "offsets_read_motion")
         if getattr(config, name) < getattr(stored, name)
     ]
     if stored.detail_hidden and config.detail_depth < stored.detail_depth:
@@ -141,9 +148,12 @@ def grow_weights(
         if name.startswith("detail."):
             continue  # grown above, or added: it starts adding nothing (its last conv is zero)
         added_block = re.fullmatch(r"features\.body\.(\d+)\.body\.\d+\.(weight|bias)", name)
+        added_motion_conv = name.startswith("align.motion_conv.") and not stored.offsets_read_motion
         if name in weights:
             _place(name, target, weights[name], stored, config)
-        elif not (added_block and int(added_block[1]) >= stored.residual_blocks):
+        elif not (added_block and int(added_block[1]) >= stored.residual_blocks) and not (
+            added_motion_conv  # it starts at zero: its level's offsets read the motion as 0
+        ):
             raise ValueError(f"no stored weights for {name}")
     last = f"body.{2 * (config.convs_per_block - 1)}"  # the last conv of a residual block
     for block in list(model.features.body)[stored.residual_blocks :]:

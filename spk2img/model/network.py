@@ -56,7 +56,9 @@ class Spk2ImgNet(nn.Module):
         folded = len(config.sali_subwindows) * stride**2  # SALI's estimates, pixel-unshuffled
         self.features = FeatureExtractor(folded, c, config.residual_blocks, config.convs_per_block)
         self.pyramid = FeaturePyramid(c, config.pyramid_levels)
-        self.align = PCDAlignment(c, config.pyramid_levels, config.deformable_groups)
+        self.align = PCDAlignment(
+            c, config.pyramid_levels, config.deformable_groups, config.offsets_read_motion
+        )
         self.fusion = ReliabilityFusion(
             c, config.num_blocks, config.reliability_hidden, config.fusion_hidden, stride**2
         )

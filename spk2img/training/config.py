@@ -148,10 +148,12 @@ class TrainConfig:
     motion: str = flag(
         "",
         "the blocks' Lucas-Kanade motion over the member's own, as NAME=VALUE pairs: guided "
-        "(1: it guides the alignment's offsets), levels, window, damping, "
+        "(1: it guides the alignment's offsets), read (1: the offset convs read it too, "
+        "through convs that start at zero), levels, window, damping, "
         "damping_per_intensity, iterations, stride (where it is found, a multiple of the "
-        "feature stride; e.g. guided=1,stride=4,window=15,damping=1e-4); weight-free, so "
-        "--init takes any checkpoint of the member; empty: the member's",
+        "feature stride; e.g. guided=1,stride=4,window=15,damping=1e-4); --init takes any "
+        "checkpoint of the member (with read=1 one without those convs grows into it); "
+        "empty: the member's",
     )
     init: str = flag(
         "",
