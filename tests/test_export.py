@@ -340,13 +340,15 @@ def test_paper_width_exports_as_deform_conv_nodes_and_verifies(tmp_path, monkeyp
 
 def test_a_member_guided_by_its_blocks_motion_exports_with_block_graphs_that_agree(tmp_path):
     """A full-size member whose alignment its blocks' Lucas-Kanade motion guides, found at 1/4
-    size over two levels (so it pads to 8, past its pyramid's 4): the one-shot graph and the
-    block graphs, whose code now carries the SALI estimates the head finds the motion from,
+    size over two levels (so it pads to 8, past its pyramid's 4), and whose offset convs read
+    that motion too (random convs, where training starts them at zero): the one-shot graph and
+    the block graphs, whose code now carries the SALI estimates the head finds the motion from,
     agree with torch (streams with block reuse at 17x23 and at 16x24, a multiple of 8; one
     Gauss-Newton step a level, for a shorter trace)."""
     config = dataclasses.replace(
         THREE_BLOCKS,
         flow_guided=True,
+        offsets_read_motion=True,
         motion_stride=4,
         motion_levels=2,
         motion_window=7,
@@ -354,6 +356,7 @@ def test_a_member_guided_by_its_blocks_motion_exports_with_block_graphs_that_agr
     )
     assert config.size_multiple == 8
     source = random_source(config, seed=2)
+    assert all(conv.weight.abs().max() > 0 for conv in source.model.align.motion_conv.values())
     result = export_verified(source, tmp_path / "guided.onnx", EXAMPLE, reuse=False)
     assert result.parity.passed and result.block_parity <= ATOL
     names = [o.name for o in onnx.load(block_graph_paths(result.path)["encoder"]).graph.output]

@@ -93,6 +93,36 @@ def test_the_new_width_learns():
     assert moved > 0
 
 
+def test_a_guided_member_grows_offset_convs_that_read_its_motion():
+    """A motion-guided ``cpu`` (random weights, its sampling guided and moving) grows the convs
+    by which each pyramid level's offsets read the blocks' motion: they start at zero, so on a
+    moving stream the grown network computes what it did, and they get a gradient at once; the
+    step back (dropping them) is refused."""
+    cpu = MEMBERS["cpu"]
+    reading = replace(cpu, offsets_read_motion=True)
+    assert growth_problems(cpu, reading) == []
+    old = random_source(cpu, seed=4).model
+    new = _grown(old, reading)
+    assert all(
+        not conv.weight.any() and not conv.bias.any() for conv in new.align.motion_conv.values()
+    )
+    frames = torch.rand(1, 1, 24, 48, generator=torch.Generator().manual_seed(5)) < 0.3
+    pan = torch.cat([frames.roll(t // 4, dims=-1) for t in range(41)], dim=1).float()
+    _assert_same_outputs(old, new, pan)
+    new.train()(pan)[0].square().mean().backward()
+    assert all(conv.weight.grad.abs().max() > 0 for conv in new.align.motion_conv.values())
+    assert any("offsets_read_motion would shrink" in p for p in growth_problems(reading, cpu))
+
+
+def test_offsets_read_the_motion_only_where_it_guides_them():
+    with pytest.raises(ValueError, match="needs the motion to guide them"):
+        replace(MEMBERS["tiny"], offsets_read_motion=True)
+    net = build_model(replace(MEMBERS["tiny"], flow_guided=True, offsets_read_motion=True))
+    pyramid = [torch.zeros(1, 12, 8, 8), torch.zeros(1, 12, 4, 4)]
+    with pytest.raises(ValueError, match="give its flow"):
+        net.align(pyramid, pyramid, None)
+
+
 @pytest.mark.parametrize(
     ("change", "problem"),
     [

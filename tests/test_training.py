@@ -305,7 +305,8 @@ def test_a_run_resumes_only_with_the_shape_that_started_it(tmp_path):
 @pytest.mark.parametrize(
     "settings, says",
     [
-        ("speed=2", "use NAME=VALUE with NAME one of guided, levels, window"),
+        ("speed=2", "use NAME=VALUE with NAME one of guided, read, levels, window"),
+        ("guided=0,read=1", "offsets_read_motion needs the motion to guide them"),
         ("guided=yes", "'yes' is not 0 or 1"),
         ("levels", "use NAME=VALUE"),
         ("levels=two", "'two' is not an integer"),

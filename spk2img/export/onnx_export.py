@@ -27,6 +27,7 @@ from onnx import helper, numpy_helper
 from torch import nn
 
 from spk2img.errors import InputError
+from spk2img.model.alignment import PCDAlignment
 from spk2img.model.checkpoint import read_network
 from spk2img.model.config import MEMBERS, Spk2ImgNetConfig
 from spk2img.model.deform_conv import ModulatedDeformConv2d
@@ -122,7 +123,8 @@ def random_source(
     zero), scaled by :data:`RANDOM_OFFSET_GAIN`: the random network's offsets are then a few
     pixels, fractional and spatially varying, and its masks spread over (0, 1), so the exported
     graph's deformable sampling is really exercised (borders included). The detail
-    refinement's last conv (also zero at the start of training) is random too.
+    refinement's last conv and the convs by which the offsets read the motion (also zero at
+    the start of training) are random too.
     """
     if isinstance(member, str) and member not in MEMBERS:
         raise InputError(f"unknown member {member!r}; choose one of {', '.join(MEMBERS)}")
@@ -138,6 +140,9 @@ def random_source(
                     module.conv_offset_mask.bias.mul_(RANDOM_OFFSET_GAIN)
             elif isinstance(module, DetailRefinement):
                 module.body[-1].reset_parameters()
+            elif isinstance(module, PCDAlignment) and module.motion_conv is not None:
+                for conv in module.motion_conv.values():
+                    conv.reset_parameters()
     finally:
         torch.random.set_rng_state(generator_state)
     source = f"random weights, seed {seed}"
