@@ -56,7 +56,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     with needs_extra("train", "training"):
         from spk2img.training.train import train
-    from spk2img.training.data import DataMix
+    from spk2img.training.data import DataMix, speed_weights
 
     fields = dataclasses.fields(TrainConfig)
     values = {
@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         cfg = TrainConfig(**values)
         DataMix.parse(cfg.data_mix)
+        speed_weights(cfg.speed_mix)
     except ValueError as exc:
         raise InputError(str(exc)) from exc
     summary = train(cfg)

@@ -89,6 +89,11 @@ class TrainConfig:
         "photos=0.5,clips=0.3,procedural=0.2",
         "shares of photo, clip and procedural samples (photos and clips need --data)",
     )
+    speed_mix: str = flag(
+        "",
+        "shares of the scenes' motion classes: static, slow (0.03-0.3 px a spike frame) and "
+        "fast (0.5-3), e.g. static=0,slow=0.8,fast=0.2; empty: a third each",
+    )
     sensor_preset: str = flag(
         "",
         "the real-like regime's sensor preset (JSON of spk2img fit-sensor); empty: the preset "

@@ -43,22 +43,40 @@ class DataMix:
     @classmethod
     def parse(cls, text: str) -> DataMix:
         """``"photos=0.5,clips=0.3,procedural=0.2"`` -> a mix (missing kinds weigh 0)."""
-        try:
-            pairs = [item.split("=") for item in text.split(",") if item.strip()]
-            weights = {name.strip(): float(value) for name, value in pairs}
-        except ValueError:
-            raise ValueError(f"bad data mix {text!r}: use e.g. photos=0.5,clips=0.3") from None
-        unknown = set(weights) - set(KINDS)
-        values = list(weights.values())
-        if unknown or not all(0 <= v < math.inf for v in values) or sum(values) <= 0:
-            raise ValueError(
-                f"bad data mix {text!r}: kinds are {', '.join(KINDS)}, weights >= 0, not all 0"
-            )
-        return cls(**{kind: weights.get(kind, 0.0) for kind in KINDS})
+        return cls(**parse_shares(text, KINDS, "data mix", "kinds"))
 
     def weights(self) -> np.ndarray:
         w = np.array([self.procedural, self.photos, self.clips], np.float64)
         return w / w.sum()
+
+
+def parse_shares(text: str, names: tuple[str, ...], what: str, noun: str) -> dict[str, float]:
+    """``"a=0.5,b=0.3"`` -> a weight for each of ``names`` (missing ones weigh 0); a
+    ``ValueError`` saying ``bad {what} {text!r}: ...`` for anything else (``noun`` names what
+    ``names`` are), and for weights that are negative, not finite or all 0."""
+    try:
+        pairs = [item.split("=") for item in text.split(",") if item.strip()]
+        weights = {name.strip(): float(value) for name, value in pairs}
+    except ValueError:
+        example = ",".join(f"{name}=0.5" for name in names[:2])
+        raise ValueError(f"bad {what} {text!r}: use e.g. {example}") from None
+    unknown = set(weights) - set(names)
+    values = list(weights.values())
+    if unknown or not all(0 <= v < math.inf for v in values) or sum(values) <= 0:
+        raise ValueError(
+            f"bad {what} {text!r}: {noun} are {', '.join(names)}, weights >= 0, not all 0"
+        )
+    return {name: weights.get(name, 0.0) for name in names}
+
+
+def speed_weights(text: str) -> np.ndarray | None:
+    """``"static=0,slow=0.8,fast=0.2"`` -> the probabilities of the scenes' motion classes
+    (:data:`~spk2img.sim.scenes.MOTIONS`, in that order); None for ``""`` or equal shares
+    (each class a third, drawn as before the mix existed, so such runs keep their batches)."""
+    if not text:
+        return None
+    weights = np.array(list(parse_shares(text, MOTIONS, "speed mix", "classes").values()))
+    return None if np.all(weights == weights[0]) else weights / weights.sum()
 
 
 def draw_augmentation(rng: np.random.Generator) -> tuple[int, bool]:
@@ -99,6 +117,8 @@ class SampleMaker:
             centres the ground truth is taken at).
         display_share: share of the photo and clip samples read by the ``display`` light
             convention (value / 255 is the light), the others by ``linear``.
+        speeds: probabilities of the motion classes static, slow and fast
+            (:func:`speed_weights`); None: a third each.
     """
 
     def __init__(
@@ -112,10 +132,11 @@ class SampleMaker:
         ideal_share: float = 0.5,
         geometry: Geometry = PUBLISHED_GEOMETRY,
         display_share: float = 0.0,
+        speeds: np.ndarray | None = None,
     ):
         check_share("ideal_share", ideal_share)
         check_share("display_share", display_share)
-        self.display_share = display_share
+        self.display_share, self.speeds = display_share, speeds
         self.geometry = geometry
         self.patch, self.seed, self.rank = patch, seed, rank
         self.index, self.real_sensor, self.ideal_share = index, real_sensor, ideal_share
@@ -146,7 +167,10 @@ class SampleMaker:
         they were drawn from (the numpy simulator goes on drawing from it)."""
         rng = np.random.default_rng([self.seed, self.rank, step, item])
         kind = KINDS[int(rng.choice(len(KINDS), p=self.weights))]
-        motion, brightness = str(rng.choice(MOTIONS)), str(rng.choice(BRIGHTNESSES))
+        motion = str(
+            rng.choice(MOTIONS) if self.speeds is None else rng.choice(MOTIONS, p=self.speeds)
+        )
+        brightness = str(rng.choice(BRIGHTNESSES))
         p = self.patch
         try:
             if kind != "procedural":

@@ -42,7 +42,7 @@ from spk2img.sim.sources import SourceIndex
 
 from .alignment_loss import alignment_term, recorded_shifts
 from .config import TrainConfig
-from .data import Batches, DataMix, SampleMaker
+from .data import Batches, DataMix, SampleMaker, speed_weights
 from .ema import WeightAverage
 from .loss import hierarchical_loss
 from .stop import StopRequest
@@ -208,6 +208,7 @@ def train(cfg: TrainConfig) -> dict:
         cfg.ideal_share,
         model.config.geometry,
         cfg.display_share,
+        speed_weights(cfg.speed_mix),
     )
     films_on_device = cfg.films_on_device()
     make = "plans" if films_on_device else "batch"
