@@ -10,6 +10,8 @@ import time
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from onnx_models import write_tiny_checkpoint
 from PIL import Image
 
@@ -27,9 +29,10 @@ from spk2img.model.checkpoint import (
 from spk2img.model.config import MOTION_FIELDS, PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
+from spk2img.sim.scenes import MOTIONS
 from spk2img.sim.simulator import FILM_FRAMES, SensorConfig
 from spk2img.sim.sources import load_photo
-from spk2img.training.data import Batches, SampleMaker
+from spk2img.training.data import Batches, SampleMaker, speed_weights
 from spk2img.training.ema import WeightAverage
 from spk2img.training.loss import hierarchical_loss
 from spk2img.training.stop import StopRequest
@@ -113,6 +116,9 @@ def test_an_unknown_loss_is_refused(tmp_path, capsys):
         ("--lr", "nan", "--lr nan: must be a positive number"),
         ("--data-mix", "photos=nan", "bad data mix 'photos=nan'"),
         ("--data-mix", "photos=inf", "bad data mix 'photos=inf'"),
+        ("--speed-mix", "slow=-1", "bad speed mix 'slow=-1': classes are static, slow, fast"),
+        ("--speed-mix", "walk=1", "bad speed mix 'walk=1'"),
+        ("--speed-mix", "slow", "bad speed mix 'slow': use e.g. static=0.5,slow=0.5"),
         ("--motion", "levels=2", "--motion levels=2: tiny does not read the blocks' motion"),
     ],
 )
@@ -132,6 +138,25 @@ def test_batches_are_a_function_of_seed_and_step():
     assert not np.array_equal(a[0], c[0])
     assert a[0].shape == (2, 41, 16, 16) and a[1].shape == (2, 5, 16, 16)
     assert set(np.unique(a[0])) <= {0.0, 1.0}
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    shares=st.tuples(*[st.sampled_from([0.0, 0.1, 0.5, 1.0, 3.0])] * 3).filter(lambda s: sum(s) > 0)
+)
+def test_the_speed_mix_sets_how_often_each_motion_class_is_drawn(shares):
+    """``--speed-mix``: each motion class is drawn in proportion to its share (400 draws,
+    within 0.08), a class of share 0 never; equal shares draw as a maker without a mix does,
+    scene for scene."""
+    text = ",".join(f"{name}={share}" for name, share in zip(MOTIONS, shares, strict=True))
+    maker = SampleMaker(16, seed=5, speeds=speed_weights(text))
+    drawn = [maker.draw(step, 0)[1].meta["motion"] for step in range(400)]
+    for name, share in zip(MOTIONS, shares, strict=True):
+        assert drawn.count(name) / 400 == pytest.approx(share / sum(shares), abs=0.08)
+        assert share or name not in drawn
+    if len(set(shares)) == 1:
+        plain = SampleMaker(16, seed=5)
+        assert drawn == [plain.draw(step, 0)[1].meta["motion"] for step in range(400)]
 
 
 def test_the_ideal_share_sets_how_many_samples_the_noise_free_sensor_films():
