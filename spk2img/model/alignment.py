@@ -14,6 +14,14 @@ def _conv(in_channels: int, out_channels: int, stride: int = 1) -> nn.Conv2d:
     return nn.Conv2d(in_channels, out_channels, 3, stride=stride, padding=1)
 
 
+def _zero_conv(in_channels: int, out_channels: int) -> nn.Conv2d:
+    """A 3x3 conv whose weights and bias start at zero (it adds nothing until trained)."""
+    conv = _conv(in_channels, out_channels)
+    nn.init.zeros_(conv.weight)
+    nn.init.zeros_(conv.bias)
+    return conv
+
+
 def _upsample(x: torch.Tensor) -> torch.Tensor:
     return F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)
 
@@ -83,11 +91,11 @@ class PCDAlignment(nn.Module):
     def __init__(self, channels: int, levels: int, groups: int, reads_motion: bool = False) -> None:
         super().__init__()
         self.levels = levels
-        self.motion_conv = nn.ModuleDict() if reads_motion else None
-        for i in range(levels, 0, -1) if reads_motion else ():
-            self.motion_conv[f"l{i}"] = _conv(2, channels)
-            nn.init.zeros_(self.motion_conv[f"l{i}"].weight)
-            nn.init.zeros_(self.motion_conv[f"l{i}"].bias)
+        self.motion_conv = (
+            nn.ModuleDict({f"l{i}": _zero_conv(2, channels) for i in range(levels, 0, -1)})
+            if reads_motion
+            else None
+        )
         self.offset_conv1 = nn.ModuleDict()
         self.offset_conv2 = nn.ModuleDict()
         self.offset_conv3 = nn.ModuleDict()

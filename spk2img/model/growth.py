@@ -147,13 +147,13 @@ def grow_weights(
     for name, target in own.items():
         if name.startswith("detail."):
             continue  # grown above, or added: it starts adding nothing (its last conv is zero)
-        added_block = re.fullmatch(r"features\.body\.(\d+)\.body\.\d+\.(weight|bias)", name)
-        added_motion_conv = name.startswith("align.motion_conv.") and not stored.offsets_read_motion
+        block = re.fullmatch(r"features\.body\.(\d+)\.body\.\d+\.(weight|bias)", name)
+        added = (block and int(block[1]) >= stored.residual_blocks) or (
+            name.startswith("align.motion_conv.") and not stored.offsets_read_motion
+        )  # an added residual block or motion conv starts as initialised (zeroed below, or zero)
         if name in weights:
             _place(name, target, weights[name], stored, config)
-        elif not (added_block and int(added_block[1]) >= stored.residual_blocks) and not (
-            added_motion_conv  # it starts at zero: its level's offsets read the motion as 0
-        ):
+        elif not added:
             raise ValueError(f"no stored weights for {name}")
     last = f"body.{2 * (config.convs_per_block - 1)}"  # the last conv of a residual block
     for block in list(model.features.body)[stored.residual_blocks :]:
