@@ -29,10 +29,11 @@ from spk2img.model.checkpoint import (
 from spk2img.model.config import MOTION_FIELDS, PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
-from spk2img.sim.scenes import MOTIONS
+from spk2img.sim.natural_scenes import draw_speed
+from spk2img.sim.scenes import MOTIONS, TRAINING_MOTIONS, random_scene
 from spk2img.sim.simulator import FILM_FRAMES, SensorConfig
 from spk2img.sim.sources import load_photo
-from spk2img.training.data import Batches, SampleMaker, speed_weights
+from spk2img.training.data import KINDS, Batches, SampleMaker, speed_weights
 from spk2img.training.ema import WeightAverage
 from spk2img.training.loss import hierarchical_loss
 from spk2img.training.stop import StopRequest
@@ -116,7 +117,7 @@ def test_an_unknown_loss_is_refused(tmp_path, capsys):
         ("--lr", "nan", "--lr nan: must be a positive number"),
         ("--data-mix", "photos=nan", "bad data mix 'photos=nan'"),
         ("--data-mix", "photos=inf", "bad data mix 'photos=inf'"),
-        ("--speed-mix", "slow=-1", "bad speed mix 'slow=-1': classes are static, slow, fast"),
+        ("--speed-mix", "slow=-1", "bad speed mix 'slow=-1': classes are static, slow, fast, moderate"),
         ("--speed-mix", "walk=1", "bad speed mix 'walk=1'"),
         ("--speed-mix", "slow", "bad speed mix 'slow': use e.g. static=0.5,slow=0.5"),
         ("--motion", "levels=2", "--motion levels=2: tiny does not read the blocks' motion"),
@@ -142,21 +143,42 @@ def test_batches_are_a_function_of_seed_and_step():
 
 @settings(max_examples=15, deadline=None)
 @given(
-    shares=st.tuples(*[st.sampled_from([0.0, 0.1, 0.5, 1.0, 3.0])] * 3).filter(lambda s: sum(s) > 0)
+    shares=st.tuples(*[st.sampled_from([0.0, 0.1, 0.5, 1.0, 3.0])] * 4).filter(lambda s: sum(s) > 0)
 )
 def test_the_speed_mix_sets_how_often_each_motion_class_is_drawn(shares):
-    """``--speed-mix``: each motion class is drawn in proportion to its share (400 draws,
-    within 0.08), a class of share 0 never; equal shares draw as a maker without a mix does,
-    scene for scene."""
-    text = ",".join(f"{name}={share}" for name, share in zip(MOTIONS, shares, strict=True))
+    """``--speed-mix``: each motion class, ``moderate`` included, is drawn in proportion to its
+    share (400 draws, within 0.08), a class of share 0 never; a mix without ``moderate`` draws
+    as it did before that class existed (equal shares of the three as a maker without a mix,
+    scene for scene)."""
+    text = ",".join(f"{n}={share}" for n, share in zip(TRAINING_MOTIONS, shares, strict=True))
     maker = SampleMaker(16, seed=5, speeds=speed_weights(text))
     drawn = [maker.draw(step, 0)[1].meta["motion"] for step in range(400)]
-    for name, share in zip(MOTIONS, shares, strict=True):
+    for name, share in zip(TRAINING_MOTIONS, shares, strict=True):
         assert drawn.count(name) / 400 == pytest.approx(share / sum(shares), abs=0.08)
         assert share or name not in drawn
-    if len(set(shares)) == 1:
-        plain = SampleMaker(16, seed=5)
-        assert drawn == [plain.draw(step, 0)[1].meta["motion"] for step in range(400)]
+    if shares[3] == 0:  # the draw before moderate existed, replayed
+        three = np.array(shares[:3]) / sum(shares[:3])
+
+        def before(step):
+            rng = np.random.default_rng([5, 0, step, 0])
+            rng.choice(len(KINDS), p=maker.weights)
+            return str(
+                rng.choice(MOTIONS) if len(set(shares[:3])) == 1 else rng.choice(MOTIONS, p=three)
+            )
+
+        assert drawn == [before(step) for step in range(400)]
+
+
+def test_moderate_scenes_move_between_the_slow_and_fast_classes():
+    """A ``moderate`` scene moves 0.3-1 px a spike frame (log-uniform: both halves of the range
+    drawn), procedural and photo alike; the default draws never give it."""
+    rng = np.random.default_rng(3)
+    speeds = [random_scene(rng, 32, 32, "moderate").meta["speed"] for _ in range(60)]
+    assert min(speeds) >= 0.3 and max(speeds) <= 1.0
+    assert min(speeds) < np.sqrt(0.3) < max(speeds)
+    assert all(draw_speed(rng, "moderate") >= 0.3 for _ in range(50))
+    defaults = {random_scene(rng, 16, 16).meta["motion"] for _ in range(60)}
+    assert defaults == set(MOTIONS)
 
 
 def test_the_ideal_share_sets_how_many_samples_the_noise_free_sensor_films():

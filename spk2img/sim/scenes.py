@@ -21,8 +21,18 @@ from numpy.typing import ArrayLike
 from PIL import Image, ImageDraw, ImageFont
 
 MOTIONS = ("static", "slow", "fast")
+"""The motion classes scenes are drawn from by default and scored in."""
+TRAINING_MOTIONS = (*MOTIONS, "moderate")
+""":data:`MOTIONS` and ``moderate``, the speeds between slow and fast, where real video's faster
+windows fall (0.2-0.9 px a spike frame in the real-video validation's fast bin): a class training
+can draw (``--speed-mix``), never drawn by default nor scored."""
 BRIGHTNESSES = ("dim", "normal", "bright")
-SPEED_RANGES = {"static": (0.0, 0.0), "slow": (0.03, 0.3), "fast": (0.5, 3.0)}  # px/frame
+SPEED_RANGES = {  # px/frame
+    "static": (0.0, 0.0),
+    "slow": (0.03, 0.3),
+    "fast": (0.5, 3.0),
+    "moderate": (0.3, 1.0),
+}
 MEAN_RANGES = {"dim": (0.03, 0.1), "normal": (0.15, 0.5), "bright": (0.5, 0.85)}  # intensity
 CALIBRATION_FRAMES = 64.0  # motion speeds are averaged over frames [0, 64]
 SAMPLE_BLOCK = 2**16  # scene samples rendered at once (small: BLAS threads, cache)
@@ -445,13 +455,15 @@ def random_scene(
     kinds: tuple[str, ...] = tuple(CONTENT_KINDS),
 ) -> MovingImage:
     """A random scene: content kind (among ``kinds``, at their weights), motion class
-    (``static``, ``slow`` 0.03-0.3 px/frame, ``fast`` 0.5-3 px/frame, log-uniform) and
-    brightness class (``dim`` mean intensity
-    0.03-0.1, ``normal`` 0.15-0.5, ``bright`` 0.5-0.85), each drawn uniformly unless given."""
+    (``static``, ``slow`` 0.03-0.3 px/frame, ``fast`` 0.5-3 px/frame, log-uniform; or, given,
+    ``moderate`` 0.3-1) and brightness class (``dim`` mean intensity 0.03-0.1, ``normal``
+    0.15-0.5, ``bright`` 0.5-0.85), each drawn uniformly unless given."""
     motion = motion or str(rng.choice(MOTIONS))
     brightness = brightness or str(rng.choice(BRIGHTNESSES))
-    if motion not in MOTIONS or brightness not in BRIGHTNESSES:
-        raise ValueError(f"motion must be one of {MOTIONS} and brightness one of {BRIGHTNESSES}")
+    if motion not in TRAINING_MOTIONS or brightness not in BRIGHTNESSES:
+        raise ValueError(
+            f"motion must be one of {TRAINING_MOTIONS} and brightness one of {BRIGHTNESSES}"
+        )
     lo, hi = SPEED_RANGES[motion]
     speed = float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) if hi > 0 else 0.0
     # a source 1.5x the output: zoom and flow seldom reach its mirrored border

@@ -91,8 +91,9 @@ class TrainConfig:
     )
     speed_mix: str = flag(
         "",
-        "shares of the scenes' motion classes: static, slow (0.03-0.3 px a spike frame) and "
-        "fast (0.5-3), e.g. static=0,slow=0.8,fast=0.2; empty: a third each",
+        "shares of the scenes' motion classes: static, slow (0.03-0.3 px a spike frame), fast "
+        "(0.5-3) and moderate (0.3-1), e.g. static=0,slow=0.7,moderate=0.2,fast=0.1; empty: "
+        "static, slow and fast a third each",
     )
     sensor_preset: str = flag(
         "",

@@ -23,7 +23,14 @@ import numpy as np
 
 from spk2img.model.config import PUBLISHED_GEOMETRY, Geometry
 from spk2img.sim.natural_scenes import MAX_LAYERS, clip_scene, photo_scene
-from spk2img.sim.scenes import BRIGHTNESSES, MOTIONS, PROCEDURAL_KINDS, Scene, random_scene
+from spk2img.sim.scenes import (
+    BRIGHTNESSES,
+    MOTIONS,
+    PROCEDURAL_KINDS,
+    TRAINING_MOTIONS,
+    Scene,
+    random_scene,
+)
 from spk2img.sim.simulator import SensorConfig, ground_truth, simulate
 from spk2img.sim.sources import SourceIndex, load_clip, load_photo
 
@@ -69,14 +76,19 @@ def parse_shares(text: str, names: tuple[str, ...], what: str, noun: str) -> dic
     return {name: weights.get(name, 0.0) for name in names}
 
 
-def speed_weights(text: str) -> np.ndarray | None:
-    """``"static=0,slow=0.8,fast=0.2"`` -> the probabilities of the scenes' motion classes
-    (:data:`~spk2img.sim.scenes.MOTIONS`, in that order); None for ``""`` or equal shares
-    (each class a third, drawn as before the mix existed, so such runs keep their batches)."""
+def speed_weights(text: str) -> dict[str, float] | None:
+    """``"static=0,slow=0.7,moderate=0.2,fast=0.1"`` -> motion class -> probability, over
+    :data:`~spk2img.sim.scenes.MOTIONS` in their order, then ``moderate`` where its share is not
+    0; None for ``""`` or equal shares of the three (drawn as before the mix existed, so such
+    runs keep their batches, as runs without ``moderate`` keep theirs)."""
     if not text:
         return None
-    weights = np.array(list(parse_shares(text, MOTIONS, "speed mix", "classes").values()))
-    return None if np.all(weights == weights[0]) else weights / weights.sum()
+    shares = parse_shares(text, TRAINING_MOTIONS, "speed mix", "classes")
+    names = [name for name in TRAINING_MOTIONS if name in MOTIONS or shares[name] > 0]
+    weights = np.array([shares[name] for name in names])
+    if len(names) == len(MOTIONS) and np.all(weights == weights[0]):
+        return None
+    return dict(zip(names, weights / weights.sum(), strict=True))
 
 
 def draw_augmentation(rng: np.random.Generator) -> tuple[int, bool]:
@@ -117,8 +129,8 @@ class SampleMaker:
             centres the ground truth is taken at).
         display_share: share of the photo and clip samples read by the ``display`` light
             convention (value / 255 is the light), the others by ``linear``.
-        speeds: probabilities of the motion classes static, slow and fast
-            (:func:`speed_weights`); None: a third each.
+        speeds: motion class -> probability (:func:`speed_weights`); None: static, slow and
+            fast a third each.
     """
 
     def __init__(
@@ -132,7 +144,7 @@ class SampleMaker:
         ideal_share: float = 0.5,
         geometry: Geometry = PUBLISHED_GEOMETRY,
         display_share: float = 0.0,
-        speeds: np.ndarray | None = None,
+        speeds: dict[str, float] | None = None,
     ):
         check_share("ideal_share", ideal_share)
         check_share("display_share", display_share)
@@ -167,9 +179,10 @@ class SampleMaker:
         they were drawn from (the numpy simulator goes on drawing from it)."""
         rng = np.random.default_rng([self.seed, self.rank, step, item])
         kind = KINDS[int(rng.choice(len(KINDS), p=self.weights))]
-        motion = str(
-            rng.choice(MOTIONS) if self.speeds is None else rng.choice(MOTIONS, p=self.speeds)
-        )
+        if self.speeds is None:
+            motion = str(rng.choice(MOTIONS))
+        else:
+            motion = str(rng.choice(list(self.speeds), p=np.array(list(self.speeds.values()))))
         brightness = str(rng.choice(BRIGHTNESSES))
         p = self.patch
         try:
