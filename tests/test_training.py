@@ -29,8 +29,7 @@ from spk2img.model.checkpoint import (
 from spk2img.model.config import MOTION_FIELDS, PUBLISHED_GEOMETRY, get_config
 from spk2img.model.network import Spk2ImgNet, build_model
 from spk2img.runtime.torch_backend import DEFAULT_CHECKPOINT
-from spk2img.sim.natural_scenes import draw_speed
-from spk2img.sim.scenes import MOTIONS, TRAINING_MOTIONS, random_scene
+from spk2img.sim.scenes import MOTIONS, TRAINING_MOTIONS, draw_speed, random_scene
 from spk2img.sim.simulator import FILM_FRAMES, SensorConfig
 from spk2img.sim.sources import load_photo
 from spk2img.training.data import KINDS, Batches, SampleMaker, speed_weights

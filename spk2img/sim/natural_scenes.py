@@ -34,10 +34,10 @@ from PIL import Image, ImageDraw
 
 from spk2img.sim.scenes import (
     MEAN_RANGES,
-    SPEED_RANGES,
     Motion,
     MovingImage,
     Scene,
+    draw_speed,
     sample_bilinear,
 )
 from spk2img.sim.simulator import FILM_FRAMES
@@ -90,12 +90,6 @@ def soft_shape(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
         ]
         draw.polygon(points, fill=1.0)
     return np.asarray(mask.resize((width, height), Image.Resampling.BOX), np.float32)
-
-
-def draw_speed(rng: np.random.Generator, motion: str) -> float:
-    """A speed (px/frame) of the motion class, log-uniform in its range (0 for static)."""
-    lo, hi = SPEED_RANGES[motion]
-    return float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) if hi > 0 else 0.0
 
 
 class LayeredScene(Scene):

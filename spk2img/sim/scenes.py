@@ -446,6 +446,12 @@ def tone_map(
     return intensity, {"gamma": gamma, "black": black, "mean": float(intensity.mean())}
 
 
+def draw_speed(rng: np.random.Generator, motion: str) -> float:
+    """A speed (px/frame) of the motion class, log-uniform in its range (0 for static)."""
+    lo, hi = SPEED_RANGES[motion]
+    return float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) if hi > 0 else 0.0
+
+
 def random_scene(
     rng: np.random.Generator,
     height: int,
@@ -464,8 +470,7 @@ def random_scene(
         raise ValueError(
             f"motion must be one of {TRAINING_MOTIONS} and brightness one of {BRIGHTNESSES}"
         )
-    lo, hi = SPEED_RANGES[motion]
-    speed = float(np.exp(rng.uniform(np.log(lo), np.log(hi)))) if hi > 0 else 0.0
+    speed = draw_speed(rng, motion)
     # a source 1.5x the output: zoom and flow seldom reach its mirrored border
     sh, sw = int(np.ceil(1.5 * height)) + 2, int(np.ceil(1.5 * width)) + 2
     kinds = list(kinds)
