@@ -79,3 +79,4 @@ _.load_window
 # spk2img/evaluation/scoring.py, used by scripts/real_video_validation.py and
 # scripts/spike_reds_benchmark.py
 _.network_methods
+_.dates_made  # the "Made by" dates of both scripts' results files

@@ -28,7 +28,13 @@ import numpy as np
 
 from spk2img.cli.progress import add_progress_flags, progress_bar
 from spk2img.evaluation.real_video import SPEEDS, real_video_scores, real_video_set
-from spk2img.evaluation.scoring import network_methods, tfi_window, tfp_best_window, tfp_window
+from spk2img.evaluation.scoring import (
+    dates_made,
+    network_methods,
+    tfi_window,
+    tfp_best_window,
+    tfp_window,
+)
 
 Method = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """``(spikes, truth)`` of a window -> ``(H, W)`` image (spk2img.evaluation.scoring's shape)."""
@@ -129,11 +135,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     data = {
         "command": f"{earlier['command']} && {command} --add" if earlier else command,
-        "date": " and ".join(
-            dict.fromkeys(
-                [*(earlier["date"].split(" and ") if earlier else []), time.strftime("%Y-%m-%d")]
-            )
-        ),
+        "date": dates_made(earlier["date"] if earlier else None),
         "clips": len({w.clip for w in windows}),
         "windows": len(windows),
         "seeds": args.seeds,

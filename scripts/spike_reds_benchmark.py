@@ -18,12 +18,12 @@ import argparse
 import importlib.metadata
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from spk2img.evaluation.scoring import (
+    dates_made,
     image_scores,
     mean_scores,
     network_methods,
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     command = " ".join(["python scripts/spike_reds_benchmark.py", *(argv or sys.argv[1:])])
     results = {
         "command": " && ".join(filter(None, [before.get("command"), command])),
-        "date": time.strftime("%Y-%m-%d"),
+        "date": dates_made(before.get("date")),
         "source": source,
         "streams": [s.name for s in streams],
         "methods": scored,

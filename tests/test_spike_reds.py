@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+from datetime import date
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from script_loader import load_script
 
 from spk2img.evaluation import spike_reds
 from spk2img.evaluation.metrics import psnr
+from spk2img.evaluation.scoring import dates_made
 from spk2img.evaluation.spike_reds import BenchmarkDataError, find_streams, load_window
 from spk2img.io.spikes import read_spikes, write_spikes
 from spk2img.runtime.classical import tfp
@@ -74,13 +76,26 @@ def test_the_script_scores_each_method_per_stream_and_keeps_what_it_is_asked_to(
     tiny = results["methods"]["tiny"]
     assert tiny["psnr"] == pytest.approx(np.mean([v[0] for v in tiny["per_stream"].values()]))
     out["md"].write_text(out["md"].read_text() + "\n## Reading it\n\nA note.\n")
+    out["json"].write_text(json.dumps(results | {"date": "2026-12-02 and 2026-12-04"}))
     args = ["--root", str(root), "--models", "", "--add", *files]
     assert script.main(args) == 0  # the classical rows again, tiny's kept, the note kept
     again = json.loads(out["json"].read_text())
     assert again["methods"]["tiny"] == tiny and "A note." in out["md"].read_text()
+    assert again["date"] == dates_made("2026-12-02 and 2026-12-04")  # the earlier runs' dates kept
+    assert again["date"].startswith("2026-12-02 and 2026-12-04")
     assert "| tiny |" in out["md"].read_text()
     assert script.main(["--root", str(tmp_path / "nothing"), *files]) == 2
     assert "no <split>/spike/NAME.dat" in capsys.readouterr().err
+
+
+def test_a_results_file_lists_each_date_it_was_made_on_once_in_order():
+    assert dates_made(None, date(2026, 12, 6)) == "2026-12-06"
+    assert dates_made("2026-12-02 and 2026-12-04", date(2026, 12, 6)) == (
+        "2026-12-02 and 2026-12-04 and 2026-12-06"
+    )
+    assert dates_made("2026-12-02 and 2026-12-04", date(2026, 12, 4)) == (
+        "2026-12-02 and 2026-12-04"
+    )
 
 
 def test_without_the_toolkit_it_says_how_to_get_it(monkeypatch):

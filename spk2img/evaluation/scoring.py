@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from datetime import date
 from itertools import product
 
 import numpy as np
@@ -157,3 +158,11 @@ def network_methods(models: str, threads: int, self_ensemble: bool = False) -> d
         label = f"{name}, self-ensemble" if self_ensemble else name
         methods[label] = network_scorer(network.predict)
     return methods
+
+
+def dates_made(earlier: str | None, today: date | None = None) -> str:
+    """The dates a results file was made on, for its "Made by" line: ``earlier``'s (the file's
+    previous ``date``, ``" and "``-joined, or ``None`` for a new file) then ``today`` (ISO
+    ``YYYY-MM-DD``, default the local date), each date once, in the order first made."""
+    dates = earlier.split(" and ") if earlier else []
+    return " and ".join(dict.fromkeys([*dates, (today or date.today()).isoformat()]))
