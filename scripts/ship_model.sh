@@ -5,7 +5,8 @@
 # others; then `spk2img bench --trained previous=...`), strip the optimiser state, export and
 # verify the ONNX graph with its block graphs, write the model card (docs/model_card.md for
 # `default`, else docs/model_card_NAME.md; the README figure too for `default`) and keep the run's
-# metrics log in training_state/ (its last.pt only by hand, for the one run in progress).
+# metrics log in training_state/, gzip-compressed (its last.pt only by hand, for the one run in
+# progress).
 # Usage: scripts/ship_model.sh NAME runs/RUN [MODEL-CARD OPTIONS, e.g. --data DIR
 #        --real-capture CAPTURE.npz --history "..."]
 set -euo pipefail
@@ -28,3 +29,5 @@ cp "$run/metrics.jsonl" "$state/"
 python -m spk2img.training.model_card --checkpoint "$model.pt" --onnx "$model.onnx" \
     --run-dir "$state" --out "$card" "$@"
 if [ "$name" = default ]; then python scripts/readme_figure.py; fi
+# the finished run's log, compressed (training_state/README.md; the campaign report reads both)
+gzip -9 -n -f "$state/metrics.jsonl"

@@ -1,4 +1,5 @@
 import dataclasses
+import gzip
 import json
 from pathlib import Path
 
@@ -89,6 +90,19 @@ def test_runs_count_their_steps_windows_and_optimiser_time(campaign):
     expected = {"natural_ideal": 32.0, "natural_fitted": 24.0, "real_video": 28.0}
     assert [(v.step, v.psnr) for v in child.validations] == [(60, expected)]
     assert root.validations[0].psnr == {"natural_ideal": 30.0, "natural_fitted": 22.0}
+
+
+def test_a_finished_runs_compressed_log_reads_as_the_log_itself_and_two_logs_are_refused(campaign):
+    """gzip -9n on a finished run's metrics.jsonl (to save room) changes nothing the campaign
+    reads; a run with both logs is an input error naming them, not one of them picked."""
+    before = load_campaign(campaign)
+    log = campaign / "child" / "metrics.jsonl"
+    compressed = gzip.compress(log.read_bytes(), 9, mtime=0)
+    (campaign / "child" / "metrics.jsonl.gz").write_bytes(compressed)
+    with pytest.raises(InputError, match="child has two metrics logs: metrics.jsonl and metrics"):
+        load_campaign(campaign)
+    log.unlink()
+    assert load_campaign(campaign) == before
 
 
 def test_a_run_resumed_in_other_arithmetic_or_on_a_gpu_names_each_hardware_in_order(tmp_path):

@@ -1,6 +1,7 @@
 """The training campaign: every run's settings, samples, optimiser time and validation curve.
 
-Read from the runs' metrics logs (``training_state/NAME/metrics.jsonl``) and the campaign file
+Read from the runs' metrics logs (``training_state/NAME/metrics.jsonl``, or
+``metrics.jsonl.gz`` for a finished run's, gzip-compressed to save room) and the campaign file
 (``training_state/campaign.json``). A run logs its settings (member, batch, patch, hardware) and
 what ``--init`` loaded (the run that wrote it and its step) in a ``run`` record at every
 (re)start; the campaign file says the same for the runs logged before that record existed
@@ -16,6 +17,7 @@ child started from.
 
 from __future__ import annotations
 
+import gzip
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +25,8 @@ from pathlib import Path
 from spk2img.errors import InputError
 
 CAMPAIGN_FILE = "campaign.json"
+LOG_NAMES = ("metrics.jsonl", "metrics.jsonl.gz")
+"""A run's metrics log: as training writes it, or gzip-compressed once the run is finished."""
 
 
 THEN = "; then "
@@ -144,20 +148,37 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
     )
 
 
+def metrics_logs(state_dir: Path) -> dict[str, Path]:
+    """Each run's metrics log in ``state_dir`` (one of :data:`LOG_NAMES` in ``state_dir/NAME/``),
+    by run name; an input error for a run with both, which would say two things."""
+    logs: dict[str, Path] = {}
+    for path in sorted(p for name in LOG_NAMES for p in state_dir.glob(f"*/{name}")):
+        name = path.parent.name
+        if name in logs:
+            raise InputError(f"run {name} has two metrics logs: {logs[name].name} and {path.name}")
+        logs[name] = path
+    return logs
+
+
+def read_records(path: Path) -> list[dict]:
+    """The records of a metrics log (``.jsonl``, or ``.jsonl.gz`` compressed), in order."""
+    data = gzip.decompress(path.read_bytes()) if path.suffix == ".gz" else path.read_bytes()
+    return [json.loads(line) for line in data.decode().splitlines() if line.strip()]
+
+
 def load_campaign(state_dir: Path) -> dict[str, Run]:
     """Every run of ``state_dir`` (a folder holding ``campaign.json`` and one folder with a
     ``metrics.jsonl`` per run), by name; an input error for a run whose settings or start
     neither its log nor the campaign file gives, an entry without a log, or a start naming no
     run."""
     entries = json.loads((state_dir / CAMPAIGN_FILE).read_text())["runs"]
-    logs = {p.parent.name: p for p in sorted(state_dir.glob("*/metrics.jsonl"))}
+    logs = metrics_logs(state_dir)
     unlogged = sorted(set(entries) - set(logs))
     if unlogged:
         raise InputError(f"{CAMPAIGN_FILE} lists runs without a metrics log: {', '.join(unlogged)}")
     runs = {}
     for name, path in logs.items():
-        records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-        runs[name] = read_run(name, records, entries.get(name, {}))
+        runs[name] = read_run(name, read_records(path), entries.get(name, {}))
     for run in runs.values():
         if run.init and run.init[0] not in runs:
             raise InputError(f"run {run.name} starts from {run.init[0]}, which is not a run")
