@@ -25,6 +25,8 @@ fi
 python -c "from spk2img.model.checkpoint import release_checkpoint as r; r('$run/best.pt', '$model.pt')"
 spk2img export "$model.pt" --out "$model.onnx" --name "spk2img-$name" --deform-conv
 spk2img verify "$model.onnx" --json "docs/verify_$name.json" | tee "docs/verify_$name.txt"
+# the run's whole log replaces any compressed one an earlier ship of the same run left
+rm -f "$state/metrics.jsonl.gz"
 cp "$run/metrics.jsonl" "$state/"
 python -m spk2img.training.model_card --checkpoint "$model.pt" --onnx "$model.onnx" \
     --run-dir "$state" --out "$card" "$@"

@@ -148,16 +148,21 @@ def read_run(name: str, records: list[dict], entry: dict) -> Run:
     )
 
 
+def run_log(run_dir: Path) -> Path | None:
+    """The metrics log in ``run_dir`` (one of :data:`LOG_NAMES`), ``None`` where it has none; an
+    input error for a run with both, which would say two things."""
+    found = [run_dir / name for name in LOG_NAMES if (run_dir / name).is_file()]
+    if len(found) > 1:
+        names = " and ".join(path.name for path in found)
+        raise InputError(f"run {run_dir.name} has two metrics logs: {names}")
+    return found[0] if found else None
+
+
 def metrics_logs(state_dir: Path) -> dict[str, Path]:
-    """Each run's metrics log in ``state_dir`` (one of :data:`LOG_NAMES` in ``state_dir/NAME/``),
-    by run name; an input error for a run with both, which would say two things."""
-    logs: dict[str, Path] = {}
-    for path in sorted(p for name in LOG_NAMES for p in state_dir.glob(f"*/{name}")):
-        name = path.parent.name
-        if name in logs:
-            raise InputError(f"run {name} has two metrics logs: {logs[name].name} and {path.name}")
-        logs[name] = path
-    return logs
+    """Each run's metrics log in ``state_dir`` (:func:`run_log` of ``state_dir/NAME/``), by run
+    name, for the runs that have one."""
+    logs = {d.name: run_log(d) for d in sorted(state_dir.iterdir()) if d.is_dir()}
+    return {name: log for name, log in logs.items() if log is not None}
 
 
 def read_records(path: Path) -> list[dict]:

@@ -39,7 +39,7 @@ from spk2img.runtime.binning import suggest_binning
 from spk2img.runtime.loader import load_network
 from spk2img.runtime.onnx_backend import OnnxModel, graph_metadata
 
-from .campaign import LOG_NAMES, read_records, run_hardware
+from .campaign import LOG_NAMES, read_records, run_hardware, run_log
 from .train import selection_words
 
 CLASSES = [f"psnr_{c}" for c in (*SENSORS, *MOTIONS, *BRIGHTNESS)]
@@ -169,8 +169,7 @@ def render(checkpoint: Path, onnx_path: Path, run_dir: Path, results: dict, hist
     macs = count_macs(config)
     graph = graph_metadata(onnx_path).get("graph", "grid_sample")
     graph = {"deform_conv": "DeformConv", "grid_sample": "GridSample"}.get(graph, graph)
-    log = next((run_dir / n for n in LOG_NAMES if (run_dir / n).is_file()), run_dir / LOG_NAMES[0])
-    records = read_records(log)
+    records = read_records(run_log(run_dir) or run_dir / LOG_NAMES[0])
     vals = [r for r in records if r["kind"] == "val"]
     data = next((r for r in records if r["kind"] == "data"), None)
     tc = state["train_config"]
