@@ -29,6 +29,7 @@ import numpy as np
 from spk2img.cli.progress import add_progress_flags, progress_bar
 from spk2img.evaluation.real_video import SPEEDS, real_video_scores, real_video_set
 from spk2img.evaluation.scoring import (
+    commands_made,
     dates_made,
     network_methods,
     tfi_window,
@@ -134,7 +135,7 @@ def main(argv: list[str] | None = None) -> None:
         + (" --self-ensemble" if args.self_ensemble else "")
     )
     data = {
-        "command": f"{earlier['command']} && {command} --add" if earlier else command,
+        "command": commands_made(earlier["command"], f"{command} --add") if earlier else command,
         "date": dates_made(earlier["date"] if earlier else None),
         "clips": len({w.clip for w in windows}),
         "windows": len(windows),

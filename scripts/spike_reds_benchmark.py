@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from spk2img.evaluation.scoring import (
+    commands_made,
     dates_made,
     image_scores,
     mean_scores,
@@ -72,6 +73,19 @@ def markdown(results: dict, notes: str) -> str:
     return "\n".join(lines) + "\n" + (f"\n{notes}" if notes else "")
 
 
+def scoring_args(argv: list[str] | None) -> list[str]:
+    """The command line's arguments less ``--threads``, which changes the time, not the scores."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    kept = []
+    while args:
+        arg = args.pop(0)
+        if arg == "--threads":
+            args.pop(0)
+        elif not arg.startswith("--threads="):
+            kept.append(arg)
+    return kept
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", default="default,real,tiny,tiny-real,cpu")
@@ -99,9 +113,9 @@ def main(argv: list[str] | None = None) -> int:
         scored[name] = score(method, windows)
         print(f"{name}: {scored[name]['psnr']:.2f} dB, SSIM {scored[name]['ssim']:.3f}", flush=True)
     source = str(root) if args.root else f"{TOOLKIT} {importlib.metadata.version(TOOLKIT)}"
-    command = " ".join(["python scripts/spike_reds_benchmark.py", *(argv or sys.argv[1:])])
+    command = " ".join(["python scripts/spike_reds_benchmark.py", *scoring_args(argv)])
     results = {
-        "command": " && ".join(filter(None, [before.get("command"), command])),
+        "command": commands_made(before.get("command"), command),
         "date": dates_made(before.get("date")),
         "source": source,
         "streams": [s.name for s in streams],

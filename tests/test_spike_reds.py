@@ -11,12 +11,14 @@ from datetime import date
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from PIL import Image
 from script_loader import load_script
 
 from spk2img.evaluation import spike_reds
 from spk2img.evaluation.metrics import psnr
-from spk2img.evaluation.scoring import dates_made
+from spk2img.evaluation.scoring import commands_made, dates_made
 from spk2img.evaluation.spike_reds import BenchmarkDataError, find_streams, load_window
 from spk2img.io.spikes import read_spikes, write_spikes
 from spk2img.runtime.classical import tfp
@@ -84,8 +86,19 @@ def test_the_script_scores_each_method_per_stream_and_keeps_what_it_is_asked_to(
     assert again["date"] == dates_made("2026-12-02 and 2026-12-04")  # the earlier runs' dates kept
     assert again["date"].startswith("2026-12-02 and 2026-12-04")
     assert "| tiny |" in out["md"].read_text()
+    assert script.main([*args, "--threads", "1"]) == 0  # the same command again: recorded once
+    made_by = json.loads(out["json"].read_text())["command"].split(" && ")
+    assert [c.split("--models ")[1].split(" ")[0] for c in made_by] == ["tiny", ""]
     assert script.main(["--root", str(tmp_path / "nothing"), *files]) == 2
     assert "no <split>/spike/NAME.dat" in capsys.readouterr().err
+
+
+@given(st.lists(st.sampled_from(["a --add", "b --add", "c --x 1 --add", "a --add --x 2"]), min_size=1))
+def test_a_results_file_lists_each_command_it_was_made_by_once_in_the_order_first_run(runs):
+    made_by = None
+    for command in runs:
+        made_by = commands_made(made_by, command)
+    assert made_by.split(" && ") == list(dict.fromkeys(runs))
 
 
 def test_a_results_file_lists_each_date_it_was_made_on_once_in_order():

@@ -160,6 +160,16 @@ def network_methods(models: str, threads: int, self_ensemble: bool = False) -> d
     return methods
 
 
+def commands_made(earlier: str | None, command: str) -> str:
+    """The commands a results file was made by, for its "Made by" line: ``earlier``'s (the
+    file's previous ``command``, ``" && "``-joined, or ``None`` for a new file) then
+    ``command``, each distinct command once, in the order first run. Running a command again
+    re-scores the same rows in place (with the weights installed then), so the line stays one
+    that remakes the file's rows in their order."""
+    commands = earlier.split(" && ") if earlier else []
+    return " && ".join(dict.fromkeys([*commands, command]))
+
+
 def dates_made(earlier: str | None, today: date | None = None) -> str:
     """The dates a results file was made on, for its "Made by" line: ``earlier``'s (the file's
     previous ``date``, ``" and "``-joined, or ``None`` for a new file) then ``today`` (ISO
