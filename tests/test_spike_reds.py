@@ -93,7 +93,10 @@ def test_the_script_scores_each_method_per_stream_and_keeps_what_it_is_asked_to(
     assert "no <split>/spike/NAME.dat" in capsys.readouterr().err
 
 
-@given(st.lists(st.sampled_from(["a --add", "b --add", "c --x 1 --add", "a --add --x 2"]), min_size=1))
+COMMANDS = ["a --add", "b --add", "c --x 1 --add", "a --add --x 2"]
+
+
+@given(st.lists(st.sampled_from(COMMANDS), min_size=1))
 def test_a_results_file_lists_each_command_it_was_made_by_once_in_the_order_first_run(runs):
     made_by = None
     for command in runs:
