@@ -80,3 +80,4 @@ _.load_window
 # scripts/spike_reds_benchmark.py
 _.network_methods
 _.dates_made  # the "Made by" dates of both scripts' results files
+_.commands_made  # the "Made by" commands of both scripts' results files
