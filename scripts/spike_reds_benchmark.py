@@ -73,19 +73,6 @@ def markdown(results: dict, notes: str) -> str:
     return "\n".join(lines) + "\n" + (f"\n{notes}" if notes else "")
 
 
-def scoring_args(argv: list[str] | None) -> list[str]:
-    """The command line's arguments less ``--threads``, which changes the time, not the scores."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    kept = []
-    while args:
-        arg = args.pop(0)
-        if arg == "--threads":
-            args.pop(0)
-        elif not arg.startswith("--threads="):
-            kept.append(arg)
-    return kept
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", default="default,real,tiny,tiny-real,cpu")
@@ -113,7 +100,13 @@ def main(argv: list[str] | None = None) -> int:
         scored[name] = score(method, windows)
         print(f"{name}: {scored[name]['psnr']:.2f} dB, SSIM {scored[name]['ssim']:.3f}", flush=True)
     source = str(root) if args.root else f"{TOOLKIT} {importlib.metadata.version(TOOLKIT)}"
-    command = " ".join(["python scripts/spike_reds_benchmark.py", *scoring_args(argv)])
+    # what decides the rows, as real_video_validation.py records it (--threads changes the time)
+    command = (
+        f"python scripts/spike_reds_benchmark.py --models {args.models}"
+        + (" --self-ensemble" if args.self_ensemble else "")
+        + (f" --root {args.root}" if args.root else "")
+        + (" --add" if args.add else "")
+    )
     results = {
         "command": commands_made(before.get("command"), command),
         "date": dates_made(before.get("date")),
