@@ -576,7 +576,7 @@
     } finally {
       state.abort = null;
       updateButtons();
-      scheduleDraw();
+      drawNow(); // now, not at the next animation frame: the frames that came show with the error
     }
   }
 
