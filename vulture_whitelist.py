@@ -51,6 +51,7 @@ _.display_grey  # spk2img.evaluation.niqe
 
 # used by scripts/average_checkpoints.py (scripts are not scanned) and the tests
 _.average_checkpoints  # spk2img/model/checkpoint.py
+_.SELECTIONS  # spk2img/training/train.py: the choices of its --chosen-on
 
 # FastAPI routes of the viewer (spk2img/service/routers/viewer.py), registered by their decorators
 _.page

@@ -4,6 +4,8 @@
 the weighted mean of the networks' weights (same member and config) with the last source's
 metadata and an ``averaged_from`` record (:func:`spk2img.model.checkpoint.average_checkpoints`).
 Equal weights when ``--weights`` is left out; a weight may be a fraction (``2/3,1/3``).
+``--chosen-on "real video frames"`` records what the mean was chosen on (its model card says
+so) in place of the last source's record.
 Interpolating a fine-tuned checkpoint with the one it started from can keep what each does best:
 the shipped ``default``'s weights are such a mean (docs/model_card.md). ``scripts/ship_model.sh``
 ships it when it is a run folder's ``best.pt``.
@@ -17,6 +19,7 @@ from fractions import Fraction
 
 from spk2img.errors import InputError
 from spk2img.model.checkpoint import average_checkpoints
+from spk2img.training.train import SELECTIONS
 
 
 def fail(message: str) -> None:
@@ -32,6 +35,11 @@ def main() -> None:
         "--weights", help="comma-separated numbers or fractions, one per checkpoint, summing to 1"
     )
     p.add_argument("--out", required=True, help="the averaged release checkpoint (.pt)")
+    p.add_argument(
+        "--chosen-on",
+        choices=SELECTIONS,
+        help="the validation the mean was chosen on (default: the last source's record)",
+    )
     args = p.parse_args()
     n = len(args.checkpoints)
     try:
@@ -41,7 +49,7 @@ def main() -> None:
     except (ValueError, ZeroDivisionError):
         fail(f"--weights {args.weights!r} is not a list of numbers")
     try:
-        average_checkpoints(args.checkpoints, weights, args.out)
+        average_checkpoints(args.checkpoints, weights, args.out, args.chosen_on)
     except InputError as exc:
         fail(str(exc))
     print(

@@ -640,14 +640,16 @@ def test_average_checkpoints_script_reads_fractions_and_refuses_bad_input_in_one
         )
     script = [sys.executable, str(Path(__file__).parents[1] / "scripts" / "average_checkpoints.py")]
     out = tmp_path / "soup.pt"
+    chosen = ["--chosen-on", "real video frames"]
     done = subprocess.run(
-        [*script, *map(str, paths), "--weights", "2/3,1/3", "--out", str(out)],
+        [*script, *map(str, paths), "--weights", "2/3,1/3", *chosen, "--out", str(out)],
         capture_output=True,
         text=True,
     )
     assert done.returncode == 0, done.stderr
     weights = [part["weight"] for part in load_checkpoint(out)["averaged_from"]]
     np.testing.assert_allclose(weights, [2 / 3, 1 / 3])
+    assert load_checkpoint(out)["val_set"] == "real video frames"
     args = [str(tmp_path / "missing.pt"), str(paths[0]), "--weights", "2/3,1/3"]
     done = subprocess.run([*script, *args, "--out", str(out)], capture_output=True, text=True)
     assert done.returncode == 2 and "no such checkpoint" in done.stderr
@@ -666,7 +668,12 @@ def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
         path = tmp_path / f"seed{seed}.pt"
         model = build_model(config).state_dict()
         save_checkpoint(
-            path, model=model, config=config_to_dict(config), step=10 * (seed + 1), val_psnr=30.0
+            path,
+            model=model,
+            config=config_to_dict(config),
+            step=10 * (seed + 1),
+            val_psnr=30.0,
+            val_set="procedural" if seed == 0 else "natural",
         )
         paths.append(path)
     average_checkpoints(paths, [0.25, 0.75], tmp_path / "soup.pt")
@@ -678,6 +685,7 @@ def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
         else:
             assert torch.equal(tensor, b[name])
     assert state["step"] == 20 and "val_psnr" not in state  # a score the mean was not given
+    assert state["val_set"] == "natural"  # the last source's record, unless one is given
     assert state["averaged_from"] == [
         {"path": "seed0.pt", "step": 10, "weight": 0.25},
         {"path": "seed1.pt", "step": 20, "weight": 0.75},

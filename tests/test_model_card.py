@@ -42,11 +42,18 @@ def test_card_names_the_model_its_sensors_and_its_run(tmp_path, standin_model):
 
 
 def test_card_of_averaged_weights_names_what_they_average(tmp_path, standin_model):
-    """Weights averaged from checkpoints (scripts/average_checkpoints.py) say so on the card."""
+    """Weights averaged from checkpoints (scripts/average_checkpoints.py) say so on the card,
+    and what the mean was chosen on when that was recorded (``--chosen-on``)."""
     run, onnx = _two_step_run(tmp_path, standin_model)
     average_checkpoints([run / "best.pt", run / "last.pt"], [0.25, 0.75], run / "soup.pt")
-    card = render(run / "soup.pt", onnx, run, RESULTS, history="")
+    results = {**RESULTS, "natural": RESULTS["procedural"]}
+    card = render(run / "soup.pt", onnx, run, results, history="")
     assert "- weights: the weighted mean of 0.25 x `best.pt` (step 2), 0.75 x `last.pt`" in card
+    assert "(the mean PSNR of both regimes)" in card  # last.pt records none: the default
+    chosen = "real video frames"
+    average_checkpoints([run / "best.pt", run / "last.pt"], [0.5, 0.5], run / "soup.pt", chosen)
+    card = render(run / "soup.pt", onnx, run, results, history="")
+    assert "(the real-video validation's PSNR on whole frames (docs/real_video.md))" in card
 
 
 def test_card_names_every_hardware_that_trained_the_checkpoint(tmp_path, standin_model):

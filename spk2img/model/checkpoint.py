@@ -141,14 +141,22 @@ def release_checkpoint(src: str | Path, dst: str | Path, dtype: torch.dtype | No
     save_checkpoint(dst, **release)
 
 
-def average_checkpoints(sources: list[str | Path], weights: list[float], dst: str | Path) -> None:
+def average_checkpoints(
+    sources: list[str | Path],
+    weights: list[float],
+    dst: str | Path,
+    val_set: str | None = None,
+) -> None:
     """Write to ``dst`` a release checkpoint whose network weights are the weighted mean of the
     ``sources``' (same config; ``weights`` positive, summing to 1): a "model soup" of one
     lineage's checkpoints. Everything else is the last source's but its validation score
     (``val_psnr``: not the mean's), plus ``averaged_from`` (each
     source's file name, step and weight; a source that is itself a mean is listed as what it
-    averages, its weights scaled by its own). :class:`CheckpointError` when a source is not a
-    checkpoint or the configs differ; :class:`InputError` for bad weights."""
+    averages, its weights scaled by its own). ``val_set``, when given, replaces the last source's
+    record of what the checkpoint was chosen on (a mean is chosen after the runs, on a score
+    none of them logged: ``"real video frames"`` for the whole-frame real-video validation).
+    :class:`CheckpointError` when a source is not a checkpoint or the configs differ;
+    :class:`InputError` for bad weights."""
     if len(sources) < 2 or len(weights) != len(sources):
         raise InputError(
             f"need two or more checkpoints and one weight each, got {len(sources)} "
@@ -163,6 +171,8 @@ def average_checkpoints(sources: list[str | Path], weights: list[float], dst: st
     last = states[-1]
     # not val_psnr: the last source's validation score is not the mean's
     release = {k: last[k] for k in RELEASE_KEYS if k in last and k != "val_psnr"}
+    if val_set is not None:
+        release["val_set"] = val_set
     release["model"] = {}
     for name, tensor in last["model"].items():
         if tensor.is_floating_point():

@@ -92,13 +92,25 @@ def logged_best(path: Path, selection: str, until: int) -> float:
     return max(scores)
 
 
+SELECTIONS = (
+    "procedural",
+    "real video",
+    "real video frames",
+    "natural",
+    "natural ideal",
+    "natural fitted",
+)
+"""Every score a checkpoint's ``val_set`` may name: :func:`selection_set`'s, and ``real video
+frames`` (the whole-frame real-video validation, scored after a run: a weight mean's)."""
+
+
 def selection_words(selection: str) -> str:
     """The score :func:`selection_set` names, in words (for the model card)."""
     if selection == "procedural":
         return "the procedural validation's PSNR"
     if selection == "real video":
         return "the real-video validation's PSNR (crops of the held-out real clips)"
-    if selection == "real video frames":  # set by hand on a candidate scored after the run
+    if selection == "real video frames":  # a candidate scored after the run (--chosen-on)
         return "the real-video validation's PSNR on whole frames (docs/real_video.md)"
     regime = selection.removeprefix("natural").strip()
     return f"its {regime}-regime PSNR" if regime else "the mean PSNR of both regimes"
