@@ -628,8 +628,9 @@ def test_checkpoint_reader_round_trips_and_refuses_what_is_not_a_checkpoint(tmp_
 
 
 def test_average_checkpoints_script_reads_fractions_and_refuses_bad_input_in_one_line(tmp_path):
-    """scripts/average_checkpoints.py: ``--weights 2/3,1/3`` is a weighted mean; a missing file
-    exits 2 with one line, as the spk2img CLI does (the weights' checks: the test below)."""
+    """scripts/average_checkpoints.py: ``--weights 2/3,1/3`` is a weighted mean, and
+    ``--chosen-on`` is recorded as its ``val_set``; a missing file exits 2 with one line, as the
+    spk2img CLI does (the weights' checks: the test below)."""
     config = get_config("tiny")
     paths = []
     for seed in (0, 1):
