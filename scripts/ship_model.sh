@@ -7,12 +7,24 @@
 # `default`, else docs/model_card_NAME.md; the README figure too for `default`) and keep the run's
 # metrics log in training_state/, gzip-compressed (its last.pt only by hand, for the one run in
 # progress).
-# Usage: scripts/ship_model.sh NAME runs/RUN [MODEL-CARD OPTIONS, e.g. --data DIR
-#        --real-capture CAPTURE.npz --history "..."]
+# Usage: scripts/ship_model.sh NAME runs/RUN [--chosen-on SET] [MODEL-CARD OPTIONS, e.g.
+#        --data DIR --real-capture CAPTURE.npz --history "..."]
+# --chosen-on records what best.pt was chosen on when that was done after the run (e.g. "real
+# video frames": a step picked on the whole-frame real-video validation and copied to best.pt);
+# the model card then says so. Without it, the run's own record stands.
 set -euo pipefail
-name=${1:?usage: $0 NAME RUN_DIR [MODEL-CARD OPTIONS]}
-run=${2:?usage: $0 NAME RUN_DIR [MODEL-CARD OPTIONS]}
+usage="usage: $0 NAME RUN_DIR [--chosen-on SET] [MODEL-CARD OPTIONS]"
+name=${1:?$usage}
+run=${2:?$usage}
 shift 2
+chosen=None
+if [ "${1:-}" = --chosen-on ]; then
+  set_name=${2:?$usage}
+  python -c "import sys; from spk2img.training.train import SELECTIONS as s; sys.argv[1] in s or \
+sys.exit(f'ship_model.sh: --chosen-on {sys.argv[1]!r} is none of {\", \".join(s)}')" "$set_name"
+  chosen="'$set_name'"
+  shift 2
+fi
 models=spk2img/assets/models
 model=$models/spk2img-$name
 state=training_state/$(basename "$run")
@@ -22,7 +34,8 @@ if [ -f "$model.pt" ]; then
   member=$(python -c "from spk2img.model.checkpoint import load_checkpoint as l; print(l('$model.pt')['member'])")
   cp "$model.pt" "$models/previous/$kept$member.pt"
 fi
-python -c "from spk2img.model.checkpoint import release_checkpoint as r; r('$run/best.pt', '$model.pt')"
+python -c "from spk2img.model.checkpoint import release_checkpoint as r
+r('$run/best.pt', '$model.pt', val_set=$chosen)"
 spk2img export "$model.pt" --out "$model.onnx" --name "spk2img-$name" --deform-conv
 spk2img verify "$model.onnx" --json "docs/verify_$name.json" | tee "docs/verify_$name.txt"
 # the run's whole log replaces any compressed one an earlier ship of the same run left

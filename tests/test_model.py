@@ -26,6 +26,7 @@ from spk2img.model.checkpoint import (
     config_to_dict,
     load_checkpoint,
     read_network,
+    release_checkpoint,
     save_checkpoint,
 )
 from spk2img.model.complexity import count_macs, count_parameters, count_stream_macs
@@ -723,6 +724,33 @@ def test_averaged_checkpoint_holds_the_weighted_mean_and_says_of_what(tmp_path):
         average_checkpoints(paths[:1], [1.0], tmp_path / "x.pt")
     with pytest.raises(InputError, match="sum to 1"):
         average_checkpoints(paths, [0.5, 0.6], tmp_path / "x.pt")
+
+
+def test_a_released_checkpoint_keeps_the_network_and_what_it_was_chosen_on(tmp_path):
+    """A release copies the weights and the run's record but not the optimiser state; with
+    ``val_set`` (a step chosen after the run) the record is replaced and the run's own score,
+    on another set, is dropped."""
+    config = get_config("tiny")
+    weights = build_model(config).state_dict()
+    run = tmp_path / "best.pt"
+    save_checkpoint(
+        run,
+        model=weights,
+        config=config_to_dict(config),
+        step=40,
+        val_psnr=33.6,
+        val_set="real video",
+        optimizer={"state": {}, "param_groups": []},
+    )
+    release_checkpoint(run, tmp_path / "as-logged.pt")
+    release_checkpoint(run, tmp_path / "chosen.pt", val_set="real video frames")
+    logged, chosen = (load_checkpoint(tmp_path / f"{n}.pt") for n in ("as-logged", "chosen"))
+    for state in (logged, chosen):
+        assert "optimizer" not in state and state["step"] == 40
+        for name, tensor in weights.items():
+            assert torch.equal(state["model"][name], tensor)
+    assert logged["val_set"] == "real video" and logged["val_psnr"] == 33.6
+    assert chosen["val_set"] == "real video frames" and "val_psnr" not in chosen
 
 
 def test_the_motion_stride_is_the_feature_strides_multiple_and_pads_for_the_motions_pyramid():

@@ -126,13 +126,23 @@ RELEASE_KEYS = (
 )
 
 
-def release_checkpoint(src: str | Path, dst: str | Path, dtype: torch.dtype | None = None) -> None:
+def release_checkpoint(
+    src: str | Path,
+    dst: str | Path,
+    dtype: torch.dtype | None = None,
+    val_set: str | None = None,
+) -> None:
     """Copy a training checkpoint without its optimiser state (what the repo ships); with
     ``dtype`` (``torch.float16`` for a larger member's committed weights: half the bytes) its
     floating-point weights are stored in that type, and loading casts them back to the
-    network's."""
+    network's. ``val_set``, when given, replaces the run's record of what the checkpoint was
+    chosen on and drops its logged score (``val_psnr``, on the run's own set): a step chosen
+    after the run, e.g. ``"real video frames"`` for the whole-frame real-video validation."""
     state = load_checkpoint(src)
     release = {k: state[k] for k in RELEASE_KEYS if k in state}
+    if val_set is not None:
+        release.pop("val_psnr", None)
+        release["val_set"] = val_set
     if dtype is not None:
         release["model"] = {
             name: tensor.to(dtype) if tensor.is_floating_point() else tensor
