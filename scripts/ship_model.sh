@@ -17,12 +17,11 @@ usage="usage: $0 NAME RUN_DIR [--chosen-on SET] [MODEL-CARD OPTIONS]"
 name=${1:?$usage}
 run=${2:?$usage}
 shift 2
-chosen=None
+chosen=""
 if [ "${1:-}" = --chosen-on ]; then
-  set_name=${2:?$usage}
+  chosen=${2:?$usage}
   python -c "import sys; from spk2img.training.train import SELECTIONS as s; sys.argv[1] in s or \
-sys.exit(f'ship_model.sh: --chosen-on {sys.argv[1]!r} is none of {\", \".join(s)}')" "$set_name"
-  chosen="'$set_name'"
+sys.exit(f'ship_model.sh: --chosen-on {sys.argv[1]!r} is none of {\", \".join(s)}')" "$chosen"
   shift 2
 fi
 models=spk2img/assets/models
@@ -34,8 +33,8 @@ if [ -f "$model.pt" ]; then
   member=$(python -c "from spk2img.model.checkpoint import load_checkpoint as l; print(l('$model.pt')['member'])")
   cp "$model.pt" "$models/previous/$kept$member.pt"
 fi
-python -c "from spk2img.model.checkpoint import release_checkpoint as r
-r('$run/best.pt', '$model.pt', val_set=$chosen)"
+python -c "import sys; from spk2img.model.checkpoint import release_checkpoint as r
+r(sys.argv[1], sys.argv[2], val_set=sys.argv[3] or None)" "$run/best.pt" "$model.pt" "$chosen"
 spk2img export "$model.pt" --out "$model.onnx" --name "spk2img-$name" --deform-conv
 spk2img verify "$model.onnx" --json "docs/verify_$name.json" | tee "docs/verify_$name.txt"
 # the run's whole log replaces any compressed one an earlier ship of the same run left
